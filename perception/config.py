@@ -1,0 +1,536 @@
+"""Configuration: pydantic models, one per concern, read from YAML with ``yaml.safe_load``.
+
+This is the one place where configuration is defined (``perception`` cannot import ``tridar_env``,
+so the models of every concern live here and both packages use them). A mission YAML file has the
+shape of :class:`MissionConfig`; every section is optional and falls back to documented physical
+defaults. Unknown keys and bad values are rejected with a message naming the field, the value and
+what was expected.
+
+Example:
+    >>> from perception.config import load_config
+    >>> cfg = load_config("configs/missions/final_approach.yaml", sensor__tof__noise_sigma_m=0.03)
+    >>> cfg.sensor.tof.noise_sigma_m
+    0.03
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+__all__ = [
+    "ConfigError",
+    "StrictModel",
+    "TargetConfig",
+    "TriangulationConfig",
+    "TOFConfig",
+    "BeamConfig",
+    "PointingConfig",
+    "MaterialResponseConfig",
+    "OccluderConfig",
+    "FaultsConfig",
+    "ScanConfig",
+    "SensorConfig",
+    "FlashLidarConfig",
+    "ICPConfig",
+    "PAHConfig",
+    "CorridorConfig",
+    "PipelineConfig",
+    "OrbitConfig",
+    "TargetAttitudeConfig",
+    "ChaserConfig",
+    "DynamicsConfig",
+    "DockingEnvelopeConfig",
+    "RewardConfig",
+    "InitialStateConfig",
+    "EnvConfig",
+    "MissionConfig",
+    "CONFIG_DIR",
+    "load_config",
+    "load_yaml",
+    "save_config",
+    "apply_overrides",
+    "shipped_configs",
+]
+
+#: Folder of the shipped YAML files (``configs/`` at the repository root).
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+UnitFloat = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+
+
+class ConfigError(ValueError):
+    """A configuration file or override that does not validate; the message names every field."""
+
+
+class StrictModel(BaseModel):
+    """Base of every config model: unknown keys are errors, assignments are validated."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Target
+# ---------------------------------------------------------------------------------------------
+class TargetConfig(StrictModel):
+    """Which target to approach: a library name or a mesh file."""
+
+    name: str = Field("cubesat", description="library name (cubesat, cygnss, iss_port, hubble) or mesh path")
+    scale: PositiveFloat = 1.0
+    port_position_m: Vec3 | None = None
+    port_axis: Vec3 | None = None
+    mass_kg: PositiveFloat | None = None
+    reflectivity: UnitFloat = 0.5
+
+    @model_validator(mode="after")
+    def _port_pair(self) -> TargetConfig:
+        if (self.port_position_m is None) != (self.port_axis is None):
+            raise ValueError("port_position_m and port_axis must be given together")
+        return self
+
+
+# ---------------------------------------------------------------------------------------------
+# Sensors
+# ---------------------------------------------------------------------------------------------
+class TriangulationConfig(StrictModel):
+    """Triangulation subsystem: range noise sigma = k r^2, valid up to ``max_range_m``."""
+
+    noise_k_per_m: NonNegFloat = Field(5e-4, description="sigma = k * r^2 [1/m]")
+    min_range_m: NonNegFloat = 0.3
+    max_range_m: PositiveFloat = 20.0
+    min_signal: UnitFloat = Field(
+        0.02, description="reflectivity * cos(incidence) below which the spot is too dim to locate"
+    )
+
+    @model_validator(mode="after")
+    def _ranges(self) -> TriangulationConfig:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(
+                f"min_range_m={self.min_range_m} must be below max_range_m={self.max_range_m}"
+            )
+        return self
+
+
+class TOFConfig(StrictModel):
+    """Pulsed time-of-flight LIDAR: constant noise + bias, link-budget maximum range.
+
+    The received signal is ``reflectivity * cos(incidence) * power_fraction * (R_ref / r)^2``
+    against a detection threshold of 1: ``max_range_ref_m`` is the range at which a white
+    (reflectivity 1) surface at normal incidence at full power just reaches the threshold.
+    Returns closer than ``saturation_range_m`` from surfaces brighter than
+    ``saturation_reflectivity`` saturate the detector and are invalid.
+    """
+
+    noise_sigma_m: NonNegFloat = 0.025
+    bias_m: FiniteFloat = 0.005
+    max_range_ref_m: PositiveFloat = 3000.0
+    power_fraction: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
+    saturation_range_m: NonNegFloat = 2.0
+    saturation_reflectivity: UnitFloat = 0.3
+    min_range_m: NonNegFloat = 0.5
+
+
+class BeamConfig(StrictModel):
+    """Laser footprint: full-angle divergence and the sub-rays that sample it."""
+
+    divergence_rad: NonNegFloat = 5e-4
+    subrays: Annotated[int, Field(ge=1, le=64)] = 5
+    mixed_range_tolerance_m: PositiveFloat = Field(
+        0.05, description="sub-ray ranges spread more than this -> mixed pixel (edge)"
+    )
+
+
+class PointingConfig(StrictModel):
+    """Scanning-mirror pointing: angle quantisation and random jitter."""
+
+    resolution_rad: NonNegFloat = 2e-5
+    jitter_rad: NonNegFloat = 1e-5
+
+
+class MaterialResponseConfig(StrictModel):
+    """How surfaces return light: grazing dropout and the specular acceptance cone."""
+
+    grazing_limit_deg: Annotated[float, Field(gt=0, le=90)] = 80.0
+    specular_cone_deg: Annotated[float, Field(gt=0, le=90)] = 5.0
+
+
+class OccluderConfig(StrictModel):
+    """A sphere in the sensor frame that blocks rays (an arm, a boom, a visiting vehicle)."""
+
+    center_m: Vec3
+    radius_m: PositiveFloat
+
+
+class FaultsConfig(StrictModel):
+    """Fault and environment injection (all off by default)."""
+
+    dropout_prob: UnitFloat = 0.0
+    spurious_prob: UnitFloat = Field(0.0, description="per-sample probability of a stray-light return")
+    blackout_start_frame: Annotated[int, Field(ge=0)] | None = None
+    blackout_frames: Annotated[int, Field(ge=0)] = 0
+    occluder: OccluderConfig | None = None
+
+
+class ScanConfig(StrictModel):
+    """Scan pattern selection and mirror limits."""
+
+    pattern: Literal["lissajous", "rosette", "spiral", "raster"] = "rosette"
+    n_points: Annotated[int, Field(ge=4, le=200_000)] = 1000
+    sample_rate_hz: PositiveFloat = 10_000.0
+    phase_step: FiniteFloat = Field(0.37, description="pattern phase advance per frame [rad]")
+    max_mirror_accel_rad_s2: PositiveFloat = 5_000.0
+
+
+class SensorConfig(StrictModel):
+    """The TriDAR hybrid scanner (seed 000 section 4)."""
+
+    fov_deg: tuple[PositiveFloat, PositiveFloat] = (30.0, 30.0)
+    triangulation: TriangulationConfig = TriangulationConfig()
+    tof: TOFConfig = TOFConfig()
+    transition_range_m: PositiveFloat | None = Field(
+        None, description="triangulation/TOF switch; default: where their noise models cross"
+    )
+    beam: BeamConfig = BeamConfig()
+    pointing: PointingConfig = PointingConfig()
+    material: MaterialResponseConfig = MaterialResponseConfig()
+    faults: FaultsConfig = FaultsConfig()
+    scan: ScanConfig = ScanConfig()
+
+    @field_validator("fov_deg")
+    @classmethod
+    def _fov(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if max(v) >= 180.0:
+            raise ValueError(f"fov_deg={v}; expected each angle < 180 deg")
+        return v
+
+    @model_validator(mode="after")
+    def _derive_transition(self) -> SensorConfig:
+        if self.transition_range_m is None:
+            k, s = self.triangulation.noise_k_per_m, self.tof.noise_sigma_m
+            r = math.sqrt(s / k) if k > 0 and s > 0 else 7.0
+            # validate_assignment would recurse; set the derived value directly.
+            object.__setattr__(self, "transition_range_m", min(r, self.triangulation.max_range_m))
+        return self
+
+
+class FlashLidarConfig(StrictModel):
+    """Flash LiDAR of seed 003 section 3.1: a grid of pixels captured at one instant."""
+
+    rows: Annotated[int, Field(ge=2, le=4096)] = 500
+    cols: Annotated[int, Field(ge=2, le=4096)] = 500
+    fov_deg: tuple[PositiveFloat, PositiveFloat] = (20.0, 20.0)
+    range_error_m: NonNegFloat = 0.01
+    error_model: Literal["uniform", "gaussian"] = "uniform"
+    min_range_m: NonNegFloat = 0.5
+    max_range_m: PositiveFloat = 150.0
+    grazing_limit_deg: Annotated[float, Field(gt=0, le=90)] = 85.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Estimators and the TriDAR pipeline
+# ---------------------------------------------------------------------------------------------
+class ICPConfig(StrictModel):
+    """ICP tracking settings (seed 000 section 3.2)."""
+
+    method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
+    model_points: Annotated[int, Field(ge=100)] = 20_000
+    max_iterations: Annotated[int, Field(ge=1)] = 30
+    max_correspondence_m: PositiveFloat = Field(0.5, description="initial gating distance")
+    min_correspondence_m: PositiveFloat = Field(0.02, description="floor of the adaptive gate")
+    trim_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.1
+    robust_kernel: Literal["none", "huber", "tukey", "cauchy"] = "huber"
+    translation_tol_m: PositiveFloat = 1e-5
+    rotation_tol_rad: PositiveFloat = 1e-6
+    residual_tol: NonNegFloat = 1e-7
+    time_budget_s: PositiveFloat | None = None
+
+
+class PAHConfig(StrictModel):
+    """Polygonal aspect hashing acquisition (seed 000 section 3.1)."""
+
+    model_points: Annotated[int, Field(ge=20)] = 400
+    length_bin_m: PositiveFloat = 0.05
+    length_tolerance_m: PositiveFloat = 0.05
+    polygon_size: Annotated[int, Field(ge=4, le=6)] = 4
+    max_polygons: Annotated[int, Field(ge=1)] = 40
+    max_candidates: Annotated[int, Field(ge=1)] = 20_000
+    fit_inlier_m: PositiveFloat = 0.05
+    precheck_points: Annotated[int, Field(ge=10)] = 60
+    accept_fitness: UnitFloat = 0.8
+
+
+class CorridorConfig(StrictModel):
+    """Approach corridor: a cone about the port axis plus attitude and range bounds."""
+
+    half_angle_deg: Annotated[float, Field(gt=0, le=180)] = 15.0
+    attitude_tolerance_deg: Annotated[float, Field(gt=0, le=180)] = 20.0
+    min_range_m: NonNegFloat = 0.0
+    max_range_m: PositiveFloat = 1000.0
+
+
+class PipelineConfig(StrictModel):
+    """The mission configuration database of seed 000 section 3.3/5.3: modes, strategies by range."""
+
+    bearing_to_search_range_m: PositiveFloat = 200.0
+    search_to_bearing_range_m: PositiveFloat = 250.0
+    roi_whole_above_m: PositiveFloat = Field(20.0, description="whole structure beyond this range")
+    roi_port_below_m: PositiveFloat = Field(5.0, description="docking port only below this range")
+    loss_of_track_frames: Annotated[int, Field(ge=1)] = 3
+    max_inlier_rmse_factor: PositiveFloat = 4.0
+    min_fitness: UnitFloat = 0.5
+    max_jump_m: PositiveFloat = 0.5
+    max_jump_deg: PositiveFloat = 10.0
+    restart_period_s: PositiveFloat | None = None
+    tracking_latency_s: NonNegFloat = 0.09
+    search_latency_s: NonNegFloat = 1.0
+    bearing_latency_s: NonNegFloat = 0.02
+    frame_rate_hz: PositiveFloat = 5.0
+    use_corridor: bool = True
+    corridor: CorridorConfig = CorridorConfig()
+    icp_triangulation: ICPConfig | None = Field(
+        None, description="tracker settings on triangulation data (default: icp)"
+    )
+    icp: ICPConfig = ICPConfig()
+    pah: PAHConfig = PAHConfig()
+    process_noise_accel: NonNegFloat = Field(1e-4, description="[m/s^2/sqrt(Hz)]")
+    process_noise_angacc: NonNegFloat = Field(1e-4, description="[rad/s^2/sqrt(Hz)]")
+
+
+# ---------------------------------------------------------------------------------------------
+# World and environment
+# ---------------------------------------------------------------------------------------------
+class OrbitConfig(StrictModel):
+    """The target's circular reference orbit."""
+
+    altitude_m: PositiveFloat = 400_000.0
+    inclination_deg: Annotated[float, Field(ge=0, le=180)] = 51.6
+    model: Literal["cw", "nonlinear"] = "cw"
+    j2: bool = False
+
+
+class TargetAttitudeConfig(StrictModel):
+    """Target attitude motion: held in LVLH, held inertially, or tumbling torque-free."""
+
+    mode: Literal["lvlh_hold", "inertial_hold", "tumble"] = "lvlh_hold"
+    spin_rate_deg_s: NonNegFloat = 0.0
+    nutation_deg: Annotated[float, Field(ge=0, le=90)] = 0.0
+    spin_axis: Literal["max", "min"] = "max"
+    initial_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+
+
+class ChaserConfig(StrictModel):
+    """Chaser spacecraft: mass, propulsion, attitude mode and mounted frames."""
+
+    dry_mass_kg: PositiveFloat = 400.0
+    propellant_kg: NonNegFloat = 50.0
+    isp_s: PositiveFloat = 220.0
+    max_thrust_n: PositiveFloat = 20.0
+    max_torque_nm: PositiveFloat = 2.0
+    thrust_frame: Literal["lvlh", "body"] = "lvlh"
+    attitude: Literal["ideal", "controlled"] = "ideal"
+    sensor_position_m: Vec3 = (0.0, 0.3, 0.5)
+    sensor_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    dock_position_m: Vec3 = (0.0, 0.0, 0.6)
+    hull_radius_m: PositiveFloat = 0.8
+
+
+class DynamicsConfig(StrictModel):
+    """Relative translational and rotational dynamics."""
+
+    orbit: OrbitConfig = OrbitConfig()
+    target_attitude: TargetAttitudeConfig = TargetAttitudeConfig()
+    chaser: ChaserConfig = ChaserConfig()
+
+
+class DockingEnvelopeConfig(StrictModel):
+    """IDSS-like capture envelope (all relative, at contact)."""
+
+    axial_speed_min_m_s: NonNegFloat = 0.05
+    axial_speed_max_m_s: PositiveFloat = 0.10
+    lateral_offset_max_m: PositiveFloat = 0.10
+    lateral_speed_max_m_s: PositiveFloat = 0.04
+    misalignment_max_deg: PositiveFloat = 4.0
+    angular_rate_max_deg_s: PositiveFloat = 0.15
+
+    @model_validator(mode="after")
+    def _speeds(self) -> DockingEnvelopeConfig:
+        if self.axial_speed_min_m_s > self.axial_speed_max_m_s:
+            raise ValueError(
+                f"axial_speed_min_m_s={self.axial_speed_min_m_s} exceeds "
+                f"axial_speed_max_m_s={self.axial_speed_max_m_s}"
+            )
+        return self
+
+
+class RewardConfig(StrictModel):
+    """Weights of the reward terms (each term is reported in ``info`` as ``reward_<name>``)."""
+
+    progress: FiniteFloat = 1.0
+    alignment: FiniteFloat = 0.1
+    speed_limit: FiniteFloat = 1.0
+    fuel: FiniteFloat = 10.0
+    success: FiniteFloat = 100.0
+    collision: FiniteFloat = 100.0
+    corridor: FiniteFloat = 50.0
+
+
+class InitialStateConfig(StrictModel):
+    """Starting relative state (along the port axis) and its dispersion."""
+
+    range_m: PositiveFloat = 30.0
+    range_dispersion_m: NonNegFloat = 2.0
+    lateral_dispersion_m: NonNegFloat = 0.5
+    velocity_dispersion_m_s: NonNegFloat = 0.005
+    closing_speed_m_s: NonNegFloat = 0.0
+
+
+class EnvConfig(StrictModel):
+    """Gymnasium environment settings."""
+
+    perception: Literal["tridar", "truth", "truth+noise"] = "tridar"
+    frame_period_s: PositiveFloat = 0.2
+    frame_skip: Annotated[int, Field(ge=1)] = 1
+    max_episode_steps: Annotated[int, Field(ge=1)] = 2000
+    max_range_m: PositiveFloat = 100.0
+    corridor_half_angle_deg: Annotated[float, Field(gt=0, le=180)] | None = None
+    truth_noise_position_m: NonNegFloat = 0.01
+    truth_noise_velocity_m_s: NonNegFloat = 0.002
+    truth_noise_attitude_deg: NonNegFloat = 0.5
+    truth_noise_rate_deg_s: NonNegFloat = 0.05
+    speed_limit_gain_s: PositiveFloat = Field(0.02, description="v_max = v0 + gain * range")
+    speed_limit_floor_m_s: PositiveFloat = 0.08
+    initial: InitialStateConfig = InitialStateConfig()
+    envelope: DockingEnvelopeConfig = DockingEnvelopeConfig()
+    reward: RewardConfig = RewardConfig()
+    point_cloud_size: Annotated[int, Field(ge=1)] = 1024
+
+
+class MissionConfig(StrictModel):
+    """A whole scenario: target, sensor, estimators, dynamics and environment."""
+
+    name: str = "mission"
+    description: str = ""
+    target: TargetConfig = TargetConfig()
+    sensor: SensorConfig = SensorConfig()
+    flash: FlashLidarConfig = FlashLidarConfig()
+    pipeline: PipelineConfig = PipelineConfig()
+    dynamics: DynamicsConfig = DynamicsConfig()
+    env: EnvConfig = EnvConfig()
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading and saving
+# ---------------------------------------------------------------------------------------------
+M = TypeVar("M", bound=BaseModel)
+
+
+def _format_errors(exc: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration in {source}:"]
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
+        value = err.get("input")
+        if err["type"] == "extra_forbidden":
+            lines.append(f"  {loc}: unknown key (value {value!r}); check the spelling")
+        else:
+            lines.append(f"  {loc}: got {value!r}; expected {err['msg'].lower()}")
+    return "\n".join(lines)
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping with ``yaml.safe_load``; an empty file is an empty mapping."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p} does not exist")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {p} is not valid YAML: {exc}") from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {p} holds a {type(data).__name__}; expected a mapping")
+    return data
+
+
+def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Merge overrides into a nested mapping. Keys nest with ``__`` or ``.`` (``sensor__tof__bias_m``);
+    a mapping value is merged recursively."""
+    out = _deep_copy(data)
+    for key, value in overrides.items():
+        parts = key.replace(".", "__").split("__")
+        node = out
+        for part in parts[:-1]:
+            nxt = node.get(part)
+            if not isinstance(nxt, dict):
+                nxt = {}
+                node[part] = nxt
+            node = nxt
+        leaf = parts[-1]
+        if isinstance(value, dict) and isinstance(node.get(leaf), dict):
+            node[leaf] = apply_overrides(node[leaf], value)
+        else:
+            node[leaf] = value
+    return out
+
+
+def _deep_copy(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in d.items()}
+
+
+def load_config(
+    path: str | Path | None = None, model: type[M] = MissionConfig, **overrides: Any  # type: ignore[assignment]
+) -> M:
+    """Load and validate a config file (or just the defaults when ``path`` is None).
+
+    Args:
+        path: YAML file; a bare name such as ``"final_approach"`` is looked up in ``configs/missions``.
+        model: the pydantic model the file describes (default :class:`MissionConfig`).
+        **overrides: values that replace the file's, nested with ``__`` (``env__frame_skip=2``).
+
+    Raises:
+        ConfigError: a missing or unreadable file, unknown keys, or values out of range; the message
+            names each field, its value and what was expected.
+    """
+    data: dict[str, Any] = {}
+    source = "defaults"
+    if path is not None:
+        p = Path(path)
+        if not p.suffix and not p.exists():
+            p = CONFIG_DIR / "missions" / f"{p}.yaml"
+        data = load_yaml(p)
+        source = str(p)
+    if overrides:
+        data = apply_overrides(data, overrides)
+        source += f" (with overrides {sorted(overrides)})"
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, source)) from None
+
+
+def save_config(cfg: BaseModel, path: str | Path) -> Path:
+    """Write the resolved config (every default filled in) as YAML next to a result."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    return p
+
+
+def shipped_configs() -> list[Path]:
+    """Every YAML file under ``configs/``."""
+    return sorted(CONFIG_DIR.rglob("*.yaml"))

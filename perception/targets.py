@@ -1,0 +1,590 @@
+"""Target models: mesh + materials + docking port + mass properties, and the procedural library.
+
+A ``TargetModel`` is everything the sensor simulator, the estimators and the dynamics need to know
+about the object being approached, expressed in the **target body frame**, whose origin is the
+target's centre of mass. The library targets are built procedurally from trimesh primitives so they
+need no data files; any STL/OBJ/PLY/GLB mesh can be loaded with :func:`load_target` as well.
+
+Library (envelopes are the axis-aligned extents of the mesh in the body frame, x * y * z [m]):
+
+==========  ======================  =====================================================================
+name        envelope [m]            what it is
+==========  ======================  =====================================================================
+cubesat     1.20 x 0.63 x 0.92      ~1 m small satellite (seed 000 "1 cm / 1 deg on a 1 m target")
+cygnss      3.55 x 1.10 x 0.47      seed 003 experiment target: bus + two wings (dark cells on +z)
+iss_port    8.20 x 17.50 x 44.00    ISS-like docking area: node, PMA-like port (+y, V-bar), labs, truss
+hubble      13.45 x 19.30 x 8.25    Hubble-like 13.2 m x 4.3 m cylinder, two arrays, aft grapple port
+==========  ======================  =====================================================================
+
+Every library target carries off-centre features (antennas, boom, port, door, star tracker), so its
+pose from a full view is unique; ``target.symmetries`` lists any rotation that maps the mesh onto
+itself (empty for the whole library).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import trimesh
+
+from perception.geometry import make_T
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "Material",
+    "RegionOfInterest",
+    "TargetModel",
+    "LIBRARY",
+    "ENVELOPES_M",
+    "load_target",
+    "port_frame",
+    "has_embree",
+]
+
+#: Documented envelopes of the library targets, x * y * z [m] (tests hold the meshes to 1 cm).
+ENVELOPES_M: dict[str, tuple[float, float, float]] = {
+    "cubesat": (1.20, 0.63, 0.92),
+    "cygnss": (3.55, 1.10, 0.47),
+    "iss_port": (8.20, 17.50, 44.00),
+    "hubble": (13.45, 19.30, 8.25),
+}
+
+
+def has_embree() -> bool:
+    """True when trimesh casts rays with Embree (embreex installed)."""
+    return bool(trimesh.ray.has_embree)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Surface material of a face.
+
+    Attributes:
+        reflectivity: diffuse albedo at the laser wavelength, 0..1.
+        specular: mirror-like surface (MLI, polished metal) that returns only near normal incidence.
+    """
+
+    reflectivity: float
+    specular: bool = False
+
+
+@dataclass(frozen=True)
+class RegionOfInterest:
+    """An axis-aligned box in the target body frame that a scan can be steered onto.
+
+    Attributes:
+        name: e.g. ``"whole"``, ``"docking_area"``, ``"port"``.
+        center: (3,) box centre [m], target frame.
+        half_extents: (3,) half sizes [m].
+    """
+
+    name: str
+    center: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+
+    def corners(self) -> FloatArray:
+        """(8, 3) corners of the box [m], target frame."""
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        return np.asarray(self.center) + signs * np.asarray(self.half_extents)
+
+
+def port_frame(position: npt.ArrayLike, axis: npt.ArrayLike) -> FloatArray:
+    """``T_target_port`` from a port position [m] and its outward approach axis (port +z).
+
+    The port x axis is chosen deterministically orthogonal to the approach axis (closest to the
+    target x axis, or y when the axis is along x).
+    """
+    p = np.asarray(position, dtype=np.float64).reshape(3)
+    z = np.asarray(axis, dtype=np.float64).reshape(3)
+    nz = np.linalg.norm(z)
+    if not np.isfinite(nz) or nz < 1e-9 or not np.all(np.isfinite(p)):
+        raise ValueError(f"port axis {z} / position {p} must be finite with a non-zero axis")
+    z = z / nz
+    ref = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = ref - z * (ref @ z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.column_stack([x, y, z]), p)
+
+
+@dataclass(eq=False)
+class TargetModel:
+    """A target spacecraft in its body frame (origin at the centre of mass).
+
+    Attributes:
+        name: library name or file stem.
+        mesh: triangle mesh [m], body frame.
+        reflectivity: (F,) per-face diffuse reflectivity 0..1.
+        specular: (F,) per-face specular flag.
+        T_target_port: (4, 4) docking-port frame; its +z is the outward approach axis.
+        mass: [kg].
+        inertia: (3, 3) inertia tensor about the centre of mass, body axes [kg m^2].
+        regions: named regions of interest (always ``whole``, ``docking_area`` and ``port``).
+        symmetries: (3, 3) rotations mapping the mesh onto itself (besides identity).
+        description: one line for listings.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    reflectivity: FloatArray
+    specular: npt.NDArray[np.bool_]
+    T_target_port: FloatArray
+    mass: float
+    inertia: FloatArray
+    regions: dict[str, RegionOfInterest] = field(default_factory=dict)
+    symmetries: list[FloatArray] = field(default_factory=list)
+    description: str = ""
+    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        nf = len(self.mesh.faces)
+        self.reflectivity = np.asarray(self.reflectivity, dtype=np.float64).reshape(-1)
+        self.specular = np.asarray(self.specular, dtype=bool).reshape(-1)
+        if self.reflectivity.shape[0] != nf or self.specular.shape[0] != nf:
+            raise ValueError(
+                f"target {self.name!r}: {nf} faces but {self.reflectivity.shape[0]} reflectivities"
+                f" and {self.specular.shape[0]} specular flags; expected one per face"
+            )
+        if np.any(~np.isfinite(self.reflectivity)) or np.any(
+            (self.reflectivity < 0) | (self.reflectivity > 1)
+        ):
+            raise ValueError(f"target {self.name!r}: reflectivity must be within [0, 1]")
+        if not (np.isfinite(self.mass) and self.mass > 0):
+            raise ValueError(f"target {self.name!r}: mass {self.mass} must be > 0 [kg]")
+        self.inertia = np.asarray(self.inertia, dtype=np.float64).reshape(3, 3)
+        if not np.all(np.linalg.eigvalsh(0.5 * (self.inertia + self.inertia.T)) > 0):
+            raise ValueError(f"target {self.name!r}: inertia must be symmetric positive definite")
+        if not self.regions:
+            self.regions = _default_regions(self.mesh, self.T_target_port)
+
+    # -- geometry -------------------------------------------------------------------------------
+    @property
+    def extents(self) -> FloatArray:
+        """(3,) axis-aligned size [m], body frame."""
+        return np.asarray(self.mesh.extents, dtype=np.float64)
+
+    @property
+    def bounds(self) -> FloatArray:
+        """(2, 3) min and max corners [m], body frame."""
+        return np.asarray(self.mesh.bounds, dtype=np.float64)
+
+    @property
+    def radius(self) -> float:
+        """Radius [m] of the smallest origin-centred sphere holding the mesh."""
+        return float(np.linalg.norm(self.mesh.vertices, axis=1).max())
+
+    @property
+    def port_position(self) -> FloatArray:
+        """(3,) port position [m], body frame."""
+        return self.T_target_port[:3, 3].copy()
+
+    @property
+    def port_axis(self) -> FloatArray:
+        """(3,) unit outward approach axis of the port, body frame."""
+        return self.T_target_port[:3, 2].copy()
+
+    @property
+    def ray(self) -> Any:
+        """The mesh's ray intersector (Embree when embreex is installed)."""
+        return self.mesh.ray
+
+    @property
+    def model_hash(self) -> str:
+        """SHA-256 of vertices, faces and materials: identifies the geometry a database was built on."""
+        key = ("model_hash",)
+        if key not in self.cache:
+            h = hashlib.sha256()
+            h.update(np.ascontiguousarray(self.mesh.vertices, dtype=np.float64).tobytes())
+            h.update(np.ascontiguousarray(self.mesh.faces, dtype=np.int64).tobytes())
+            h.update(np.ascontiguousarray(self.reflectivity).tobytes())
+            h.update(np.ascontiguousarray(self.specular).tobytes())
+            self.cache[key] = h.hexdigest()
+        return str(self.cache[key])
+
+    def sample_surface(self, n: int, seed: int = 0) -> tuple[FloatArray, FloatArray]:
+        """Area-uniform surface samples with their outward face normals, cached per ``(n, seed)``.
+
+        Args:
+            n: number of samples (>= 1).
+            seed: seed of the private generator used for the (deterministic) sampling.
+
+        Returns:
+            points (n, 3) [m] and unit normals (n, 3), body frame. Read-only arrays.
+        """
+        if int(n) < 1:
+            raise ValueError(f"sample_surface n={n}; expected >= 1")
+        key = ("surface", int(n), int(seed))
+        if key not in self.cache:
+            rng = np.random.default_rng(seed)
+            area = self.mesh.area_faces
+            face = rng.choice(len(area), size=int(n), p=area / area.sum())
+            uv = rng.random((int(n), 2))
+            flip = uv.sum(axis=1) > 1.0
+            uv[flip] = 1.0 - uv[flip]
+            tri = self.mesh.triangles[face]
+            pts = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
+            nrm = np.asarray(self.mesh.face_normals[face], dtype=np.float64)
+            pts.setflags(write=False)
+            nrm.setflags(write=False)
+            self.cache[key] = (pts, nrm)
+        return self.cache[key]
+
+    def cached(self, key: Any, build: Callable[[], Any]) -> Any:
+        """Return ``cache[key]``, building it once with ``build()``: derived data lives with its target."""
+        if key not in self.cache:
+            self.cache[key] = build()
+        return self.cache[key]
+
+    def summary(self) -> dict[str, Any]:
+        """One row for listings: name, extents, faces, port, mass."""
+        return {
+            "name": self.name,
+            "extents_m": tuple(float(v) for v in self.extents),
+            "faces": len(self.mesh.faces),
+            "port_m": tuple(float(v) for v in self.port_position),
+            "port_axis": tuple(float(v) for v in self.port_axis),
+            "mass_kg": float(self.mass),
+            "watertight": bool(self.mesh.is_watertight),
+            "description": self.description,
+        }
+
+    def __getstate__(self) -> dict[str, Any]:
+        # Caches (KD-trees, Embree scenes) are rebuilt per process rather than pickled.
+        state = self.__dict__.copy()
+        state["cache"] = {}
+        mesh = state["mesh"]
+        state["mesh"] = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        v, f = state["mesh"]
+        state["mesh"] = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        self.__dict__.update(state)
+
+
+# ---------------------------------------------------------------------------------------------
+# Building blocks
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Part:
+    mesh: trimesh.Trimesh
+    mass: float
+    material: Material
+    # Optional material for faces whose normal points along +normal_dir (e.g. solar cells).
+    face_material: tuple[npt.NDArray[np.float64], Material] | None = None
+
+
+def _box(extents: tuple[float, float, float], center: tuple[float, float, float]) -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=extents, transform=make_T(None, center))
+
+
+def _cylinder(
+    radius: float, length: float, center: tuple[float, float, float], axis: str, sections: int = 32
+) -> trimesh.Trimesh:
+    R = {"x": [[0, 0, 1], [0, 1, 0], [-1, 0, 0]], "y": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+         "z": np.eye(3)}[axis]
+    # Rotating z onto the requested axis; vertices at k*2pi/32 keep the diameter exact on both
+    # transverse axes.
+    return trimesh.creation.cylinder(
+        radius=radius, height=length, sections=sections, transform=make_T(np.asarray(R).T, center)
+    )
+
+
+def _frustum(
+    r0: float, r1: float, start: float, end: float, axis: str, offset: tuple[float, float] = (0, 0),
+    sections: int = 32,
+) -> trimesh.Trimesh:
+    """A closed conical frustum along ``axis`` from coordinate ``start`` (radius r0) to ``end`` (r1)."""
+    ang = np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
+    ring = np.column_stack([np.cos(ang), np.sin(ang)])
+    a = np.column_stack([ring * r0, np.full(sections, start)])
+    b = np.column_stack([ring * r1, np.full(sections, end)])
+    verts = np.vstack([a, b, [[0, 0, start], [0, 0, end]]])
+    i = np.arange(sections)
+    j = (i + 1) % sections
+    side1 = np.column_stack([i, j, sections + j])
+    side2 = np.column_stack([i, sections + j, sections + i])
+    cap_a = np.column_stack([np.full(sections, 2 * sections), j, i])
+    cap_b = np.column_stack([np.full(sections, 2 * sections + 1), sections + i, sections + j])
+    faces = np.vstack([side1, side2, cap_a, cap_b])
+    mesh = trimesh.Trimesh(verts, faces, process=True)
+    if start > end:
+        mesh.invert()
+    if mesh.volume < 0:
+        mesh.invert()
+    # Map local (u, v, w) with w along the axis into target coordinates.
+    local = mesh.vertices.copy()
+    out = np.zeros_like(local)
+    axis_idx = "xyz".index(axis)
+    others = [k for k in range(3) if k != axis_idx]
+    out[:, axis_idx] = local[:, 2]
+    out[:, others[0]] = local[:, 0] + offset[0]
+    out[:, others[1]] = local[:, 1] + offset[1]
+    m = trimesh.Trimesh(out, mesh.faces, process=True)
+    if m.volume < 0:
+        m.invert()
+    return m
+
+
+def _assemble(
+    name: str,
+    parts: list[_Part],
+    port_position: tuple[float, float, float],
+    port_axis: tuple[float, float, float],
+    description: str,
+    regions: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] | None = None,
+) -> TargetModel:
+    """Concatenate parts, assign per-face materials, compute mass properties, move origin to CoM."""
+    meshes = [p.mesh for p in parts]
+    refl, spec = [], []
+    total_mass = sum(p.mass for p in parts)
+    com = sum(p.mass * np.asarray(p.mesh.center_mass) for p in parts) / total_mass
+    inertia = np.zeros((3, 3))
+    for p in parts:
+        m = p.mesh
+        local = np.asarray(m.moment_inertia) * (p.mass / m.mass)  # trimesh uses density 1
+        d = np.asarray(m.center_mass) - com
+        inertia += local + p.mass * (d @ d * np.eye(3) - np.outer(d, d))
+        r = np.full(len(m.faces), p.material.reflectivity)
+        s = np.full(len(m.faces), p.material.specular)
+        if p.face_material is not None:
+            direction, mat = p.face_material
+            sel = m.face_normals @ np.asarray(direction) > 0.5
+            r[sel] = mat.reflectivity
+            s[sel] = mat.specular
+        refl.append(r)
+        spec.append(s)
+    mesh = trimesh.util.concatenate(meshes)
+    mesh.apply_translation(-com)
+    T_port = port_frame(np.asarray(port_position) - com, port_axis)
+    roi = None
+    if regions is not None:
+        roi = {
+            k: RegionOfInterest(k, tuple(np.asarray(c) - com), tuple(h))  # type: ignore[arg-type]
+            for k, (c, h) in regions.items()
+        }
+    target = TargetModel(
+        name=name,
+        mesh=mesh,
+        reflectivity=np.concatenate(refl),
+        specular=np.concatenate(spec),
+        T_target_port=T_port,
+        mass=float(total_mass),
+        inertia=0.5 * (inertia + inertia.T),
+        regions=roi or {},
+        description=description,
+    )
+    return target
+
+
+def _default_regions(mesh: trimesh.Trimesh, T_target_port: FloatArray) -> dict[str, RegionOfInterest]:
+    lo, hi = mesh.bounds
+    size = float(np.max(hi - lo))
+    port = T_target_port[:3, 3]
+    whole = RegionOfInterest("whole", tuple((lo + hi) / 2), tuple((hi - lo) / 2))
+    d_area = max(0.25 * size, 0.3)
+    docking = RegionOfInterest("docking_area", tuple(port), (d_area, d_area, d_area))
+    d_port = max(0.06 * size, 0.15)
+    port_roi = RegionOfInterest("port", tuple(port), (d_port, d_port, d_port))
+    return {"whole": whole, "docking_area": docking, "port": port_roi}
+
+
+# Common materials (reflectivity at ~1.5 um, order of magnitude).
+WHITE_PAINT = Material(0.80)
+MLI = Material(0.45)
+SOLAR_CELL = Material(0.08)
+PANEL_BACK = Material(0.60)
+ALUMINIUM = Material(0.55)
+POLISHED = Material(0.90, specular=True)
+TRUSS = Material(0.40)
+
+
+def _cubesat() -> TargetModel:
+    parts = [
+        _Part(_box((0.60, 0.60, 0.80), (0, 0, 0)), 60.0, MLI),
+        # Docking interface ring on +z (the port), diffuse aluminium.
+        _Part(_cylinder(0.12, 0.06, (0, 0, 0.43), "z"), 2.0, ALUMINIUM),
+        # One deployed wing on +x, cells on +z.
+        _Part(_box((0.40, 0.55, 0.02), (0.50, 0, 0.10)), 3.0, PANEL_BACK,
+              (np.array([0, 0, 1.0]), SOLAR_CELL)),
+        # Whip antenna on -x, offset in +y and -z.
+        _Part(_box((0.20, 0.02, 0.02), (-0.40, 0.20, -0.30)), 0.2, ALUMINIUM),
+        # Patch antenna on -y.
+        _Part(_box((0.12, 0.03, 0.12), (0.10, -0.315, 0.20)), 0.3, WHITE_PAINT),
+        # Polished thruster nozzle on -z, off centre.
+        _Part(_frustum(0.03, 0.05, -0.40, -0.46, "z", offset=(0.15, -0.15)), 0.5, POLISHED),
+    ]
+    return _assemble(
+        "cubesat", parts, (0, 0, 0.46), (0, 0, 1),
+        "1 m-class small satellite, port ring on +z, one wing on +x",
+    )
+
+
+def _cygnss() -> TargetModel:
+    parts = [
+        _Part(_box((0.85, 0.86, 0.40), (0, 0, 0)), 20.0, MLI),
+        # Two wings along x, 1.35 m each from the bus sides; dark cells on +z, bright backs.
+        _Part(_box((1.35, 0.50, 0.02), (0.425 + 0.675, 0, 0)), 2.0, PANEL_BACK,
+              (np.array([0, 0, 1.0]), SOLAR_CELL)),
+        _Part(_box((1.35, 0.50, 0.02), (-0.425 - 0.675, 0, 0)), 2.0, PANEL_BACK,
+              (np.array([0, 0, 1.0]), SOLAR_CELL)),
+        # Antenna boom on +y.
+        _Part(_box((0.10, 0.24, 0.10), (0.20, 0.43 + 0.12, 0.0)), 0.5, ALUMINIUM),
+        # Docking port ring on +z, centred on the bus.
+        _Part(_cylinder(0.10, 0.07, (0, 0, 0.235), "z"), 1.0, ALUMINIUM),
+        # Star tracker box, off centre on +z.
+        _Part(_box((0.12, 0.10, 0.05), (0.25, 0.25, 0.225)), 0.4, WHITE_PAINT),
+    ]
+    return _assemble(
+        "cygnss", parts, (0, 0, 0.27), (0, 0, 1),
+        "seed-003 CYGNSS-like microsatellite: bus, two wings, boom on +y, port on +z",
+    )
+
+
+def _iss_port() -> TargetModel:
+    parts = [
+        # Node along y (V-bar) with the PMA-like conical adapter forward (+y).
+        _Part(_cylinder(2.2, 7.2, (0, 0, 0), "y"), 14_000.0, WHITE_PAINT),
+        _Part(_frustum(1.3, 0.9, 3.6, 5.4, "y"), 1_500.0, ALUMINIUM),
+        # Lab module aft along -y.
+        _Part(_cylinder(2.2, 8.5, (0, -3.6 - 4.25, 0), "y"), 14_500.0, WHITE_PAINT),
+        # Two side labs: a short one on +z and a longer one on -z.
+        _Part(_cylinder(2.2, 6.5, (0, 0, 2.2 + 3.25), "z"), 10_000.0, WHITE_PAINT),
+        _Part(_cylinder(2.2, 11.0, (0, 0, -2.2 - 5.5), "z"), 15_000.0, WHITE_PAINT),
+        # Truss across, above (zenith, +x) the aft lab.
+        _Part(_box((2.0, 2.0, 44.0), (5.0, -8.0, 0)), 100_000.0, TRUSS),
+        # Strut joining truss and lab.
+        _Part(_box((1.6, 1.0, 1.0), (3.0, -8.0, 0)), 500.0, TRUSS),
+    ]
+    return _assemble(
+        "iss_port", parts, (0, 5.4, 0), (0, 1, 0),
+        "ISS-like docking area: node + PMA-like port facing +y (V-bar), labs, truss",
+        regions={
+            "whole": ((2.0, -3.35, 0.0), (4.2, 8.8, 22.0)),
+            "docking_area": ((0.0, 3.0, 0.0), (2.6, 2.6, 2.6)),
+            "port": ((0.0, 5.2, 0.0), (1.0, 0.4, 1.0)),
+        },
+    )
+
+
+def _hubble() -> TargetModel:
+    parts = [
+        _Part(_cylinder(2.15, 13.2, (0, 0, 0), "x"), 9_000.0, MLI),
+        # Two arrays on masts along +-y, 2.45 m wide, cells on +z.
+        _Part(_box((2.45, 7.1, 0.02), (1.0, 2.55 + 3.55, 0)), 300.0, PANEL_BACK,
+              (np.array([0, 0, 1.0]), SOLAR_CELL)),
+        _Part(_box((2.45, 7.1, 0.02), (1.0, -2.55 - 3.55, 0)), 300.0, PANEL_BACK,
+              (np.array([0, 0, 1.0]), SOLAR_CELL)),
+        _Part(_box((0.2, 0.4, 0.2), (1.0, 2.35, 0)), 20.0, ALUMINIUM),
+        _Part(_box((0.2, 0.4, 0.2), (1.0, -2.35, 0)), 20.0, ALUMINIUM),
+        # Open aperture door at the forward (+x) end, standing up on +z.
+        _Part(_box((0.10, 3.0, 2.95), (6.65, 0, 2.15 + 1.475)), 150.0, MLI),
+        # High-gain antenna booms, one on +z (forward), one on -z (aft): not mirror images.
+        _Part(_box((0.3, 0.3, 1.6), (2.5, 0, 2.15 + 0.8)), 30.0, ALUMINIUM),
+        _Part(_box((0.3, 0.3, 1.0), (-1.5, 0.8, -2.15 - 0.5)), 30.0, ALUMINIUM),
+        # Aft bulkhead grapple / docking fixture (the port), off the axis.
+        _Part(_box((0.15, 0.6, 0.6), (-6.6 - 0.075, 0.6, 0.6)), 40.0, ALUMINIUM),
+    ]
+    return _assemble(
+        "hubble", parts, (-6.75, 0.6, 0.6), (-1, 0, 0),
+        "Hubble-like 13.2 m x 4.3 m telescope: two arrays, open door on +x, aft grapple port (-x)",
+    )
+
+
+#: Library builders by name.
+LIBRARY: dict[str, Callable[[], TargetModel]] = {
+    "cubesat": _cubesat,
+    "cygnss": _cygnss,
+    "iss_port": _iss_port,
+    "hubble": _hubble,
+}
+
+_LIBRARY_CACHE: dict[str, TargetModel] = {}
+
+
+def load_target(
+    name_or_path: str | Path,
+    *,
+    scale: float = 1.0,
+    port: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
+    mass: float | None = None,
+    reflectivity: float = 0.5,
+    specular: bool = False,
+) -> TargetModel:
+    """Load a library target by name, or a mesh file (STL/OBJ/PLY/GLB) through trimesh.
+
+    Library targets are built once per process and shared (they are read-only in use).
+
+    Args:
+        name_or_path: a name in :data:`LIBRARY` or a path to a mesh file.
+        scale: uniform scale applied to a file mesh (e.g. 0.001 for millimetres).
+        port: ``(position (3,), axis (3,))`` of the docking port in the file's frame after scaling;
+            default: the centre of the mesh's +z bounding face, axis +z.
+        mass: mass [kg] of a file target (default 100 kg, uniform density).
+        reflectivity: uniform reflectivity of a file target.
+        specular: uniform specular flag of a file target.
+
+    Raises:
+        FileNotFoundError: a path that does not exist.
+        ValueError: an unknown name, an empty or degenerate mesh, non-finite vertices, zero volume.
+    """
+    key = str(name_or_path)
+    if key in LIBRARY and not Path(key).suffix:
+        if key not in _LIBRARY_CACHE:
+            _LIBRARY_CACHE[key] = LIBRARY[key]()
+        return _LIBRARY_CACHE[key]
+    path = Path(name_or_path)
+    if not path.suffix:
+        raise ValueError(
+            f"unknown target {key!r}; expected one of {sorted(LIBRARY)} or a mesh file path"
+        )
+    if not path.is_file():
+        raise FileNotFoundError(f"target mesh file {path} does not exist")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale={scale} for {path}; expected a finite value > 0")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise ValueError(f"target mesh file {path} could not be read as a mesh: {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ValueError(f"target mesh file {path} holds no triangles")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise ValueError(f"target mesh file {path} has non-finite vertex coordinates")
+    mesh = loaded.copy()
+    mesh.apply_scale(scale)
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) == 0:
+        raise ValueError(f"target mesh file {path} has only degenerate (zero-area) triangles")
+    hull_volume = float(mesh.convex_hull.volume) if len(mesh.vertices) >= 4 else 0.0
+    if np.min(mesh.extents) <= 1e-9 or hull_volume <= 1e-12:
+        raise ValueError(f"target mesh file {path} has zero volume (flat or degenerate geometry)")
+    m = float(100.0 if mass is None else mass)
+    if not (np.isfinite(m) and m > 0):
+        raise ValueError(f"mass={mass} for {path}; expected > 0 [kg]")
+    solid = mesh if (mesh.is_watertight and mesh.volume > 0) else mesh.convex_hull
+    com = np.asarray(solid.center_mass)
+    inertia = np.asarray(solid.moment_inertia) * (m / solid.mass)
+    mesh.apply_translation(-com)
+    if port is None:
+        lo, hi = mesh.bounds
+        port_T = port_frame([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]], [0, 0, 1])
+    else:
+        port_T = port_frame(np.asarray(port[0], dtype=np.float64) - com, port[1])
+    return TargetModel(
+        name=path.stem,
+        mesh=mesh,
+        reflectivity=np.full(len(mesh.faces), float(reflectivity)),
+        specular=np.full(len(mesh.faces), bool(specular)),
+        T_target_port=port_T,
+        mass=m,
+        inertia=inertia,
+        description=f"mesh file {path.name}",
+    )

@@ -193,7 +193,10 @@ class ScanConfig(StrictModel):
     n_points: Annotated[int, Field(ge=4, le=200_000)] = 1000
     sample_rate_hz: PositiveFloat = 10_000.0
     phase_step: FiniteFloat = Field(0.37, description="pattern phase advance per frame [rad]")
-    max_mirror_accel_rad_s2: PositiveFloat = 5_000.0
+    max_mirror_accel_rad_s2: PositiveFloat = Field(
+        200_000.0,
+        description="optical-angle limit; ~1,000-point patterns over 30 deg in 0.1 s need ~1.5e5",
+    )
 
 
 class SensorConfig(StrictModel):
@@ -258,6 +261,16 @@ class ICPConfig(StrictModel):
     rotation_tol_rad: PositiveFloat = 1e-6
     residual_tol: NonNegFloat = 1e-7
     time_budget_s: PositiveFloat | None = None
+    min_points: Annotated[int, Field(ge=6)] = 10
+    kernel_scale: PositiveFloat = Field(
+        2.5, description="robust kernel threshold in units of the residual's noise sigma"
+    )
+    noise_floor_fraction: NonNegFloat = Field(
+        0.2, description="residual noise floor as a fraction of the range sigma (grazing rays)"
+    )
+    degeneracy_ratio: Annotated[float, Field(gt=0, lt=1)] = Field(
+        1e-4, description="information eigenvalue ratio below which a direction is unobservable"
+    )
 
 
 class PAHConfig(StrictModel):
@@ -341,12 +354,12 @@ class ChaserConfig(StrictModel):
     isp_s: PositiveFloat = 220.0
     max_thrust_n: PositiveFloat = 20.0
     max_torque_nm: PositiveFloat = 2.0
-    thrust_frame: Literal["lvlh", "body"] = "lvlh"
+    thrust_frame: Literal["lvlh", "body"] = "body"
     attitude: Literal["ideal", "controlled"] = "ideal"
-    sensor_position_m: Vec3 = (0.0, 0.3, 0.5)
+    sensor_position_m: Vec3 = (0.0, 0.2, -0.4)
     sensor_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
     dock_position_m: Vec3 = (0.0, 0.0, 0.6)
-    hull_radius_m: PositiveFloat = 0.8
+    hull_radius_m: PositiveFloat = 0.5
 
 
 class DynamicsConfig(StrictModel):

@@ -1,3 +1,13 @@
-"""tridar-env: a Gymnasium environment for spacecraft rendezvous and docking seen through TriDAR."""
+"""tridar-env: a Gymnasium environment for spacecraft rendezvous and docking seen through TriDAR.
+
+``import tridar_env`` registers ``TriDAR/FinalApproach-v0``, ``TriDAR/TumblingTarget-v0`` and
+``TriDAR/Rendezvous-v0`` with Gymnasium.
+"""
+
+from tridar_env.env import OBSERVATION_STRUCTURE, DockingEnv
+from tridar_env.registration import ENV_IDS, register_envs
 
 __version__ = "0.1.0"
+__all__ = ["DockingEnv", "ENV_IDS", "OBSERVATION_STRUCTURE", "register_envs"]
+
+register_envs()

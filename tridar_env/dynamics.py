@@ -725,12 +725,13 @@ class RigidBodyAttitude:
     def __init__(self, inertia: npt.ArrayLike) -> None:
         self.inertia = _inertia("inertia", inertia)
         self.inertia_inv = np.linalg.inv(self.inertia)
+        self._torque = np.zeros(3)
 
     def _rhs(self, _t: float, y: FloatArray) -> FloatArray:
         w0, x0, y0, z0 = y[0], y[1], y[2], y[3]
         p, q, r = y[4], y[5], y[6]
         omega = y[4:7]
-        omega_dot = self.inertia_inv @ -np.cross(omega, self.inertia @ omega)
+        omega_dot = self.inertia_inv @ (self._torque - np.cross(omega, self.inertia @ omega))
         return np.array(
             [
                 -0.5 * (x0 * p + y0 * q + z0 * r),
@@ -749,9 +750,13 @@ class RigidBodyAttitude:
         return _quat_wxyz("q_wxyz", q_wxyz), _array("omega_body", omega_body, 3, batch=False)
 
     def step(
-        self, q_wxyz: npt.ArrayLike, omega_body: npt.ArrayLike, dt: float
+        self,
+        q_wxyz: npt.ArrayLike,
+        omega_body: npt.ArrayLike,
+        dt: float,
+        torque_body: npt.ArrayLike | None = None,
     ) -> tuple[FloatArray, FloatArray]:
-        """Propagate the attitude by ``dt``.
+        """Propagate the attitude by ``dt``, optionally under a constant body torque [N m].
 
         Args:
             q_wxyz: ``(4,)`` body-to-inertial unit quaternion, scalar first.
@@ -769,7 +774,14 @@ class RigidBodyAttitude:
         dt = _non_negative("dt", dt)
         if dt == 0.0:
             return _wxyz(_rotation_from_wxyz(q0)), w0.copy()
-        q, w = self.propagate(q0, w0, np.array([dt]))
+        if torque_body is None:
+            q, w = self.propagate(q0, w0, np.array([dt]))
+            return q[0], w[0]
+        self._torque = _array("torque_body", torque_body, 3, batch=False)
+        try:
+            q, w = self.propagate(q0, w0, np.array([dt]))
+        finally:
+            self._torque = np.zeros(3)
         return q[0], w[0]
 
     def propagate(

@@ -1,0 +1,401 @@
+"""``DockingEnv``: rendezvous and docking seen through a TriDAR (Gymnasium API)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import numpy.typing as npt
+from gymnasium import spaces
+
+from perception.config import MissionConfig, load_config
+from perception.geometry import invert, matrix_to_quat
+from perception.state import Mode, StateVector
+from perception.targets import TargetModel, load_target
+from tridar_env.observers import Observer, make_observer
+from tridar_env.world import World
+
+FloatArray = npt.NDArray[np.float64]
+
+#: (name, size, unit, description) of every block of the flat observation, in order.
+OBSERVATION_STRUCTURE: tuple[tuple[str, int, str, str], ...] = (
+    ("mode_onehot", 3, "-", "TriDAR mode: bearing, search, tracking"),
+    ("valid", 7, "-", "validity: bearing, range, range_rate, position, velocity, attitude, angular_velocity"),
+    ("port_position_dock", 3, "m", "port origin in the chaser docking frame (+z ahead)"),
+    ("port_velocity_dock", 3, "m/s", "rate of port_position_dock"),
+    ("q_dock_port", 4, "-", "port attitude in the docking frame, scalar first (identity = aligned)"),
+    ("omega_port_dock", 3, "rad/s", "port angular velocity relative to the chaser, docking frame"),
+    ("range", 1, "m", "sensor-to-target range"),
+    ("range_rate", 1, "m/s", "range rate (negative closing)"),
+    ("bearing", 2, "rad", "azimuth (+x) and elevation (up) of the target in the sensor frame"),
+    ("fitness", 1, "-", "inlier fraction of the last registration"),
+    ("fuel_fraction", 1, "-", "propellant left / initial propellant"),
+    ("time_fraction", 1, "-", "elapsed steps / max_episode_steps"),
+    ("chaser_rate_body", 3, "rad/s", "chaser inertial angular velocity, body frame (gyro)"),
+)
+OBS_DIM = sum(s for _, s, _, _ in OBSERVATION_STRUCTURE)
+
+#: Termination causes reported in ``info["termination"]``.
+CAUSES = ("docked", "collision", "out_of_bounds", "out_of_fuel", "corridor_exit")
+
+
+def observation_slices() -> dict[str, slice]:
+    """Name -> slice of the flat observation vector."""
+    out, i = {}, 0
+    for name, size, _, _ in OBSERVATION_STRUCTURE:
+        out[name] = slice(i, i + size)
+        i += size
+    return out
+
+
+def _resolve_config(config: str | Path | MissionConfig | dict[str, Any] | None, **overrides: Any) -> MissionConfig:
+    if isinstance(config, MissionConfig):
+        if overrides:
+            return load_config(None, **{**_flatten(config.model_dump(mode="json")), **overrides})
+        return config
+    if isinstance(config, dict):
+        return load_config(None, **{**config, **overrides})
+    return load_config(config, **overrides)
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}__{k}" if prefix else k
+        if isinstance(v, dict):
+            out.update(_flatten(v, key))
+        else:
+            out[key] = v
+    return out
+
+
+def _make_target(cfg: MissionConfig) -> TargetModel:
+    tc = cfg.target
+    if Path(tc.name).suffix:
+        port = (tc.port_position_m, tc.port_axis) if tc.port_position_m is not None else None
+        return load_target(tc.name, scale=tc.scale, port=port, mass=tc.mass_kg, reflectivity=tc.reflectivity)
+    return load_target(tc.name)
+
+
+class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
+    """Rendezvous and docking with a target seen only through a simulated TriDAR.
+
+    ## Description
+    A chaser spacecraft approaches a target (an ISS-like port, a tumbling microsatellite, ...) in
+    the target's Hill/LVLH frame under Clohessy-Wiltshire (or two-body) relative motion. The agent
+    sees the TriDAR state vector — mode, validity flags, estimated relative pose and rates — never
+    the simulator's truth (which is in ``info`` for logging). One step is one TriDAR frame
+    (``frame_period_s``, default 0.2 s = 5 Hz) times ``frame_skip``; the control is held over it.
+
+    ## Action Space
+    ``Box(-1, 1, (3,))`` thrust per axis scaled to ``max_thrust_n`` [N], in the chaser body frame
+    (or LVLH, per ``dynamics.chaser.thrust_frame``). With ``dynamics.chaser.attitude: controlled``
+    it is ``Box(-1, 1, (6,))``: thrust then body torque scaled to ``max_torque_nm`` [N m]. Values
+    outside [-1, 1] are clipped and counted in ``info["clipped_actions"]``; NaN/inf raise.
+
+    ## Observation Space
+    ``Box((OBS_DIM,), float32)``, laid out by :data:`OBSERVATION_STRUCTURE`:
+
+    =====================  ====  =======  =============================================================
+    block                  size  unit     meaning
+    =====================  ====  =======  =============================================================
+    mode_onehot            3     -        bearing / search / tracking
+    valid                  7     -        bearing, range, range_rate, position, velocity, attitude, rate
+    port_position_dock     3     m        estimated port origin in the chaser docking frame
+    port_velocity_dock     3     m/s      its rate
+    q_dock_port            4     -        estimated port attitude in the docking frame (w, x, y, z)
+    omega_port_dock        3     rad/s    port angular velocity relative to the chaser
+    range, range_rate      1+1   m, m/s   to the target
+    bearing                2     rad      azimuth, elevation in the sensor frame
+    fitness                1     -        registration inlier fraction
+    fuel_fraction          1     -        propellant left
+    time_fraction          1     -        elapsed / max steps
+    chaser_rate_body       3     rad/s    chaser gyro
+    =====================  ====  =======  =============================================================
+
+    Invalid blocks hold zeros (never stale numbers); the validity flags say which.
+
+    ## Rewards
+    ``progress`` (decrease of the true dock-to-port distance), ``alignment`` (-(1 - cos) of the
+    line of sight off the port axis), ``speed_limit`` (closing faster than
+    ``floor + gain * distance``), ``fuel`` (propellant used [kg]), ``success`` (docked),
+    ``collision`` and ``corridor`` (leaving the corridor or the bounds); each weighted by
+    ``env.reward`` and reported as ``info["reward_<name>"]``; they sum to the reward.
+
+    ## Starting State
+    The chaser docking frame faces the port on its axis at ``env.initial.range_m`` (dispersed),
+    with lateral and velocity dispersions; the target holds LVLH, holds inertial, or tumbles.
+
+    ## Episode End
+    Terminated on ``docked`` (contact inside the IDSS-like envelope ``env.envelope``),
+    ``collision`` (contact outside it, or the hull meets the mesh), ``out_of_bounds``,
+    ``out_of_fuel`` or ``corridor_exit``; truncated by ``TimeLimit`` (``max_episode_steps``).
+
+    ## Arguments
+    ``config``: mission YAML path, bare mission name, ``MissionConfig`` or a dict of overrides;
+    ``perception``: ``"tridar"`` | ``"truth"`` | ``"truth+noise"`` (overrides the config);
+    ``render_mode``: ``"rgb_array"`` or ``"human"``; ``**overrides``: nested config values
+    (``env__frame_skip=2``).
+
+    Example:
+        >>> import gymnasium as gym, tridar_env
+        >>> env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape == env.observation_space.shape
+        True
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 5}
+
+    def __init__(
+        self,
+        config: str | Path | MissionConfig | dict[str, Any] | None = None,
+        *,
+        perception: str | None = None,
+        render_mode: str | None = None,
+        **overrides: Any,
+    ) -> None:
+        if perception is not None:
+            overrides["env__perception"] = perception
+        self.cfg = _resolve_config(config, **overrides)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}; expected one of {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self.target = _make_target(self.cfg)
+        self.world = World(self.cfg, self.target)
+        self.observer: Observer = make_observer(self.cfg, self.target)
+        ch = self.cfg.dynamics.chaser
+        n_act = 6 if ch.attitude == "controlled" else 3
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(n_act,), dtype=np.float32)
+        self._obs_low, self._obs_high = self._bounds()
+        self.observation_space = spaces.Box(self._obs_low, self._obs_high, dtype=np.float32)
+        self._T_dock_sensor = invert(self.world.T_chaser_dock) @ self.world.T_chaser_sensor
+        self._steps = 0
+        self._ready = False
+        self._state: StateVector | None = None
+        self._prev_distance = 0.0
+        self._renderer: Any = None
+        self.history: list[dict[str, Any]] = []
+
+    # ------------------------------------------------------------------ spaces
+    def _bounds(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        R = 2.0 * self.cfg.env.max_range_m + 50.0
+        per_block = {
+            "mode_onehot": (0.0, 1.0), "valid": (0.0, 1.0), "port_position_dock": (-R, R),
+            "port_velocity_dock": (-20.0, 20.0), "q_dock_port": (-1.0, 1.0),
+            "omega_port_dock": (-np.pi, np.pi), "range": (0.0, R), "range_rate": (-20.0, 20.0),
+            "bearing": (-np.pi, np.pi), "fitness": (0.0, 1.0), "fuel_fraction": (0.0, 1.0),
+            "time_fraction": (0.0, 1.0), "chaser_rate_body": (-np.pi, np.pi),
+        }
+        lo = np.concatenate([np.full(s, per_block[n][0]) for n, s, _, _ in OBSERVATION_STRUCTURE])
+        hi = np.concatenate([np.full(s, per_block[n][1]) for n, s, _, _ in OBSERVATION_STRUCTURE])
+        return lo.astype(np.float32), hi.astype(np.float32)
+
+    @property
+    def observation_structure(self) -> tuple[tuple[str, int, str, str], ...]:
+        """Every block of the observation with its size, unit and meaning."""
+        return OBSERVATION_STRUCTURE
+
+    # ------------------------------------------------------------------ observation
+    def _observation(self, sv: StateVector) -> npt.NDArray[np.float32]:
+        v = sv.valid
+        onehot = np.zeros(3)
+        onehot[int(sv.mode)] = 1.0
+        pos = np.zeros(3)
+        vel = np.zeros(3)
+        q = np.zeros(4)
+        om = np.zeros(3)
+        R_ds = self._T_dock_sensor[:3, :3]
+        if v.position and v.attitude:
+            T_dock_port = self._T_dock_sensor @ sv.T_sensor_target @ self.target.T_target_port
+            pos = T_dock_port[:3, 3]
+            q = matrix_to_quat(T_dock_port[:3, :3])
+            if v.velocity and v.angular_velocity:
+                r_port_s = sv.T_sensor_target[:3, :3] @ self.target.T_target_port[:3, 3]
+                vel = R_ds @ (sv.velocity + np.cross(sv.angular_velocity, r_port_s))
+            if v.angular_velocity:
+                om = R_ds @ sv.angular_velocity
+        w = self.world
+        fuel0 = self.cfg.dynamics.chaser.propellant_kg
+        obs = np.concatenate([
+            onehot, v.as_array(), pos, vel, q, om,
+            [sv.range if v.range else 0.0], [sv.range_rate if v.range_rate else 0.0],
+            sv.bearing if v.bearing else np.zeros(2), [sv.fitness],
+            [w.mass.propellant_kg / fuel0 if fuel0 > 0 else 0.0],
+            [self._steps / self.cfg.env.max_episode_steps],
+            w.chaser_angular_velocity_body,
+        ])
+        return np.clip(obs, self._obs_low, self._obs_high).astype(np.float32)
+
+    # ------------------------------------------------------------------ API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[npt.NDArray[np.float32], dict[str, Any]]:
+        super().reset(seed=seed)
+        self.world.reset(self.np_random)
+        self.observer.reset(self.np_random)
+        self._steps = 0
+        self._ready = True
+        self._prev_distance = self._distance()
+        self._state = self.observer.observe(self.world, self.np_random)
+        self.history = []
+        info = self._info(self._state, {}, "", 0)
+        self._log(info)
+        if self.render_mode == "human":
+            self.render()
+        return self._observation(self._state), info
+
+    def step(
+        self, action: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        if not self._ready:
+            raise RuntimeError("DockingEnv.step() called before reset(); call reset() first")
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"action has shape {a.shape}; expected {self.action_space.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action={a.tolist()} contains NaN or inf; expected finite values in [-1, 1]")
+        clipped = int(np.count_nonzero(np.abs(a) > 1.0))
+        a = np.clip(a, -1.0, 1.0)
+        ch = self.cfg.dynamics.chaser
+        thrust = a[:3] * ch.max_thrust_n
+        torque = a[3:] * ch.max_torque_nm if a.size == 6 else None
+        fuel_before = self.world.mass.propellant_kg
+        cause = ""
+        for _ in range(self.cfg.env.frame_skip):
+            self.world.step(thrust, torque)
+            cause = self._termination()
+            if cause:
+                break
+        self._steps += 1
+        sv = self.observer.observe(self.world, self.np_random)
+        self._state = sv
+        terms = self._reward_terms(cause, fuel_before - self.world.mass.propellant_kg)
+        reward = float(sum(terms.values()))
+        info = self._info(sv, terms, cause, clipped)
+        self._log(info)
+        if cause:
+            self._ready = False
+        if self.render_mode == "human":
+            self.render()
+        return self._observation(sv), reward, bool(cause), False, info
+
+    # ------------------------------------------------------------------ physics outcomes
+    def _distance(self) -> float:
+        T_lp, T_ld = self.world.T_lvlh_port, self.world.T_lvlh_dock
+        return float(np.linalg.norm(T_ld[:3, 3] - T_lp[:3, 3]))
+
+    def _termination(self) -> str:
+        w, env = self.world, self.cfg.env
+        c = w.contact()
+        if c.axial_distance <= 0.0 and c.lateral_offset <= self.cfg.dynamics.chaser.hull_radius_m:
+            e = env.envelope
+            inside = (
+                e.axial_speed_min_m_s <= c.closing_speed <= e.axial_speed_max_m_s
+                and c.lateral_offset <= e.lateral_offset_max_m
+                and c.lateral_speed <= e.lateral_speed_max_m_s
+                and c.misalignment_deg <= e.misalignment_max_deg
+                and c.angular_rate_deg_s <= e.angular_rate_max_deg_s
+            )
+            return "docked" if inside else "collision"
+        if w.hull_clearance() <= 0.0:
+            return "collision"
+        if np.linalg.norm(w.state[:3]) > env.max_range_m:
+            return "out_of_bounds"
+        if env.corridor_half_angle_deg is not None and c.axial_distance > 2.0:
+            off = np.degrees(np.arctan2(c.lateral_offset, c.axial_distance))
+            if off > env.corridor_half_angle_deg or c.axial_distance < 0:
+                return "corridor_exit"
+        if w.mass.propellant_kg <= 0.0:
+            return "out_of_fuel"
+        return ""
+
+    def _reward_terms(self, cause: str, fuel_used: float) -> dict[str, float]:
+        env = self.cfg.env
+        rw = env.reward
+        c = self.world.contact()
+        d = self._distance()
+        progress = self._prev_distance - d
+        self._prev_distance = d
+        los = np.arctan2(c.lateral_offset, max(c.axial_distance, 1e-3))
+        v_max = env.speed_limit_floor_m_s + env.speed_limit_gain_s * max(c.axial_distance, 0.0)
+        return {
+            "reward_progress": rw.progress * progress,
+            "reward_alignment": -rw.alignment * (1.0 - float(np.cos(los))),
+            "reward_speed_limit": -rw.speed_limit * max(0.0, c.closing_speed - v_max),
+            "reward_fuel": -rw.fuel * fuel_used,
+            "reward_success": rw.success if cause == "docked" else 0.0,
+            "reward_collision": -rw.collision if cause == "collision" else 0.0,
+            "reward_corridor": -rw.corridor if cause in ("corridor_exit", "out_of_bounds") else 0.0,
+        }
+
+    def _info(self, sv: StateVector, terms: dict[str, float], cause: str, clipped: int) -> dict[str, Any]:
+        w = self.world
+        truth = w.sensor_truth()
+        c = w.contact()
+        pos_err = att_err = float("nan")
+        info: dict[str, Any] = dict(terms)
+        if sv.valid.position:
+            pos_err = float(np.linalg.norm(sv.position - truth.T_sensor_target[:3, 3]))
+        if sv.valid.attitude:
+            dR = truth.T_sensor_target[:3, :3].T @ sv.T_sensor_target[:3, :3]
+            att_err = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        info.update(
+            t=w.t,
+            mode=Mode(sv.mode).name.lower(),
+            termination=cause,
+            clipped_actions=clipped,
+            truth_r_lvlh=w.state[:3].copy(),
+            truth_v_lvlh=w.state[3:].copy(),
+            truth_T_sensor_target=truth.T_sensor_target,
+            contact=c,
+            estimate_position_error_m=pos_err,
+            estimate_attitude_error_deg=att_err,
+            propellant_kg=w.mass.propellant_kg,
+            delta_v=w.delta_v,
+            n_points=sv.n_points,
+        )
+        return info
+
+    def _log(self, info: dict[str, Any]) -> None:
+        self.history.append({
+            "t": info["t"], "r": info["truth_r_lvlh"], "mode": info["mode"],
+            "pos_err": info["estimate_position_error_m"], "att_err": info["estimate_attitude_error_deg"],
+            "est_r": self._estimated_chaser_lvlh(),
+        })
+
+    def _estimated_chaser_lvlh(self) -> FloatArray | None:
+        sv = self._state
+        if sv is None or not sv.valid.position:
+            return None
+        # Chaser position from the estimated target position and the chaser's own attitude.
+        T_ls = self.world.T_lvlh_sensor
+        target_in_lvlh_from_est = T_ls[:3, :3] @ sv.position + T_ls[:3, 3]
+        return self.world.state[:3] - target_in_lvlh_from_est
+
+    @property
+    def state_vector(self) -> StateVector | None:
+        """The latest TriDAR state vector (what the observation was built from)."""
+        return self._state
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> npt.NDArray[np.uint8] | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        if self._renderer is None:
+            from tridar_env.render import Renderer
+
+            self._renderer = Renderer(self)
+        frame = self._renderer.draw()
+        if self.render_mode == "human":
+            self._renderer.show(frame)
+            return None
+        return frame
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

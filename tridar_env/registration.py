@@ -1,0 +1,52 @@
+"""Gymnasium ids of tridar-env; ``import tridar_env`` registers them.
+
+========================  ==========================================  =================
+id                        scenario (``configs/missions/*.yaml``)      max_episode_steps
+========================  ==========================================  =================
+TriDAR/FinalApproach-v0   final_approach: ISS-like port, V-bar, 30 m  3000 (10 min)
+TriDAR/TumblingTarget-v0  tumbling_target: cygnss spinning, 60 m      6000 (20 min)
+TriDAR/Rendezvous-v0      rendezvous: from 500 m in bearing mode      20000
+========================  ==========================================  =================
+
+``gymnasium.make(id, config=path_or_overrides, perception="truth", **overrides)`` passes its
+keyword arguments to :class:`~tridar_env.env.DockingEnv`; a ``config`` dict is a set of overrides on
+the id's mission file.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+from perception.config import CONFIG_DIR, load_config
+
+ENV_IDS: dict[str, str] = {
+    "TriDAR/FinalApproach-v0": "final_approach",
+    "TriDAR/TumblingTarget-v0": "tumbling_target",
+    "TriDAR/Rendezvous-v0": "rendezvous",
+}
+
+
+def make_mission_env(mission: str, config: Any = None, **kwargs: Any) -> Any:
+    """Entry point: the id's mission file, with ``config`` (a path or overrides dict) on top."""
+    from tridar_env.env import DockingEnv
+
+    if config is None or isinstance(config, dict):
+        overrides = dict(config or {})
+        return DockingEnv(CONFIG_DIR / "missions" / f"{mission}.yaml", **overrides, **kwargs)
+    return DockingEnv(config, **kwargs)
+
+
+def register_envs() -> None:
+    """Register every id (idempotent)."""
+    for env_id, mission in ENV_IDS.items():
+        if env_id in gym.registry:
+            continue
+        steps = load_config(CONFIG_DIR / "missions" / f"{mission}.yaml").env.max_episode_steps
+        gym.register(
+            id=env_id,
+            entry_point="tridar_env.registration:make_mission_env",
+            max_episode_steps=steps,
+            kwargs={"mission": mission},
+        )

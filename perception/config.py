@@ -271,6 +271,9 @@ class ICPConfig(StrictModel):
     degeneracy_ratio: Annotated[float, Field(gt=0, lt=1)] = Field(
         1e-4, description="information eigenvalue ratio below which a direction is unobservable"
     )
+    back_facing_cos: Annotated[float, Field(ge=-1, le=1)] = Field(
+        0.3, description="drop matches whose model normal . ray direction exceeds this (back faces)"
+    )
 
 
 class PAHConfig(StrictModel):

@@ -42,7 +42,7 @@ class PointCloud:
         directions: (N, 3) float64, unit ray direction of each sample as reported by the sensor
             (sensor frame).
         true_points: (N, 3) float64 [m] or None; noise-free surface point of each sample at its
-            sample time along the actual beam (evaluation only; NaN rows for spurious returns).
+            sample time along the actual beam (evaluation only; NaN rows for stray-light returns).
         spurious: (N,) bool; stray-light or occluder returns, not on the target (evaluation only).
         organized: (rows, cols, 3) float64 [m] or None; flash grid with NaN at invalid pixels.
         valid_mask: (rows, cols) bool or None; valid pixels of ``organized`` (row-major order of

@@ -35,7 +35,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from perception.config import ICPConfig
-from perception.geometry import check_rigid, invert, kabsch, se3_exp, se3_log
+from perception.geometry import check_rigid, invert, kabsch, se3_exp, se3_log, skew
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -49,6 +49,7 @@ __all__ = [
     "icp",
     "information_matrix",
     "covariance_from_information",
+    "covariance_about_sensor_origin",
     "validate_points",
 ]
 
@@ -77,11 +78,16 @@ class RegistrationResult:
         inlier_rmse: RMS point-to-plane residual of the inliers [m].
         converged: True when a stop criterion on the step or the residual was met.
         iterations: iterations run.
-        covariance: (6, 6) covariance of a LEFT perturbation in the sensor frame,
-            ``T_true = se3_exp(xi) @ T_sensor_target`` with ``xi = (rho [m], phi [rad])``: the
-            top-left 3x3 block is (to first order) the position covariance [m^2] of the target
-            origin in the sensor frame, the bottom-right 3x3 the attitude covariance [rad^2] about
-            the sensor axes. Unobservable directions and failures carry ``FAILURE_VARIANCE``.
+        covariance: (6, 6) covariance of a LEFT perturbation along the sensor axes, pivoting on
+            the target origin: ``xi = (rho [m], phi [rad])`` with
+            ``T_true = Tr(t) @ se3_exp(xi) @ Tr(-t) @ T_sensor_target`` (``t`` the estimated target
+            position), i.e. to first order ``t_true = t + rho`` and
+            ``R_true = exp(phi^) R``. So the top-left 3x3 block is the position covariance
+            [m^2] of the target origin in the sensor frame and the bottom-right 3x3 the attitude
+            covariance [rad^2] about the sensor axes. (Pivoting on the sensor origin instead,
+            ``T_true = se3_exp(xi) @ T``, mixes ``phi x t`` into the translation block; see
+            :func:`covariance_about_sensor_origin`.) Unobservable directions and failures carry
+            ``FAILURE_VARIANCE``.
         degenerate_axes: names from :data:`AXIS_NAMES` of the directions the geometry does not
             constrain (e.g. ``["tx", "ty", "rz"]`` for a flat panel seen face-on).
         reason: empty when fine; otherwise why the registration failed or stopped early.
@@ -295,9 +301,9 @@ def _directions(directions: npt.ArrayLike | None, P: FloatArray) -> FloatArray:
 # ---------------------------------------------------------------------------------------------
 # Information matrix and covariance
 # ---------------------------------------------------------------------------------------------
-def _jacobian_rows(s_sensor: FloatArray, n_sensor: FloatArray) -> FloatArray:
-    """Rows ``A_i = [n_i, s_i x n_i]`` with ``r_i(xi) ~= r_i - A_i xi`` for a left perturbation."""
-    return np.hstack([n_sensor, np.cross(s_sensor, n_sensor)])
+def _jacobian_rows(s_rel: FloatArray, n_sensor: FloatArray) -> FloatArray:
+    """Rows ``A_i = [n_i, s_i x n_i]`` with ``r_i(xi) ~= r_i - A_i xi``, ``s_i`` about the pivot."""
+    return np.hstack([n_sensor, np.cross(s_rel, n_sensor)])
 
 
 def _residual_variance(
@@ -312,21 +318,25 @@ def information_matrix(
     normals_sensor: npt.ArrayLike,
     sigma: float | npt.ArrayLike,
     directions: npt.ArrayLike,
+    center: npt.ArrayLike,
     floor_fraction: float = 0.2,
 ) -> FloatArray:
     """Point-to-plane Fisher information ``sum_i A_i^T A_i / var_i`` of a set of surface points.
 
-    ``A_i = [n_i, s_i x n_i]`` is the derivative of the point-to-plane residual with respect to a
-    left twist ``xi = (rho, phi)`` of ``T_sensor_target``; the residual's noise variance is
-    ``var_i = sigma_i^2 ((n_i . d_i)^2 + f^2)``: the range noise along the ray ``d_i`` projected on
-    the normal, plus a floor ``f sigma_i`` so grazing points (where the projection vanishes but
-    beam footprint and model facets do not) are not given unbounded weight.
+    The twist is the one of :attr:`RegistrationResult.covariance`: a translation ``rho`` of the
+    target origin and a rotation ``phi`` about it, both along sensor axes.
+    ``A_i = [n_i, (s_i - c) x n_i]`` is the derivative of the point-to-plane residual with respect
+    to it; the residual's noise variance is ``var_i = sigma_i^2 ((n_i . d_i)^2 + f^2)``: the range
+    noise along the ray ``d_i`` projected on the normal, plus a floor ``f sigma_i`` so grazing
+    points (where the projection vanishes but beam footprint and model facets do not) are not
+    given unbounded weight.
 
     Args:
-        points_model_sensor: (K, 3) surface points [m], sensor frame.
+        points_model_sensor: (K, 3) matched model surface points [m], sensor frame.
         normals_sensor: (K, 3) unit normals, sensor frame.
         sigma: float or (K,) range noise 1-sigma [m].
         directions: (K, 3) unit ray directions, sensor frame.
+        center: (3,) target origin in the sensor frame [m] (the pivot ``c``).
         floor_fraction: ``f`` above.
 
     Returns:
@@ -335,8 +345,9 @@ def information_matrix(
     S = np.asarray(points_model_sensor, dtype=np.float64)
     Nn = np.asarray(normals_sensor, dtype=np.float64)
     D = np.asarray(directions, dtype=np.float64)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
     sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (S.shape[0],))
-    A = _jacobian_rows(S, Nn)
+    A = _jacobian_rows(S - c, Nn)
     w = 1.0 / _residual_variance(sig, Nn, D, floor_fraction)
     return (A * w[:, None]).T @ A
 
@@ -346,19 +357,19 @@ def covariance_from_information(
 ) -> tuple[FloatArray, list[str]]:
     """Invert an information matrix, flagging and capping unobservable directions.
 
-    The eigen-decomposition is done in units where rotations are scaled by ``length_scale_m``
-    (a rotation of ``phi`` moves the target's points by ~``L phi``), so translation and rotation
-    information compare fairly. Eigenvalues below ``degeneracy_ratio`` times the largest are
-    unobservable: their variance is :data:`FAILURE_VARIANCE` and the dominant component of each
-    such eigenvector is named in the returned list.
+    Rotations are scaled by ``length_scale_m`` (a rotation ``phi`` moves the target's points by
+    ~``L phi``) so translation and rotation information compare fairly. Eigenvalues below
+    ``degeneracy_ratio`` times the largest are unobservable: their variance is
+    :data:`FAILURE_VARIANCE` and the dominant component of each such eigenvector is named in the
+    returned list.
 
     Args:
-        H: (6, 6) information matrix.
+        H: (6, 6) information matrix in the twist of :attr:`RegistrationResult.covariance`.
         length_scale_m: characteristic size of the target [m] (its radius).
         degeneracy_ratio: relative eigenvalue threshold.
 
     Returns:
-        (6, 6) covariance and the list of degenerate axis names (sorted by :data:`AXIS_NAMES`).
+        (6, 6) covariance and the list of degenerate axis names (ordered as :data:`AXIS_NAMES`).
     """
     H = np.asarray(H, dtype=np.float64)
     L = max(float(length_scale_m), 1e-6)
@@ -372,19 +383,30 @@ def covariance_from_information(
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     weak = lam < degeneracy_ratio * lam_max
     inv = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, lam))
-    cov_s = (V * inv) @ V.T
-    cov = S @ cov_s @ S
+    cov = S @ ((V * inv) @ V.T) @ S
     names: set[str] = set()
     if np.any(weak):
-        # Unobservable directions get the huge variance along their own (unscaled) axes.
+        # Unobservable directions get the huge variance along their own (unscaled) directions.
         Vw = S @ V[:, weak]
         Vw /= np.linalg.norm(Vw, axis=0, keepdims=True)
         cov = cov + FAILURE_VARIANCE * (Vw @ Vw.T)
-        for k in range(V.shape[1]):
-            if weak[k]:
-                names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
+        for k in np.flatnonzero(weak):
+            names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
     cov = 0.5 * (cov + cov.T)
     return cov, [a for a in AXIS_NAMES if a in names]
+
+
+def covariance_about_sensor_origin(result: RegistrationResult) -> FloatArray:
+    """The result's covariance re-expressed for ``T_true = se3_exp(xi) @ T_est`` (twist about the
+    sensor origin): ``Ad cov Ad^T`` with ``Ad = [[I, t^], [0, I]]``, ``t`` the target position.
+
+    At range its translation block is dominated by the rotation lever arm ``phi x t``; use the
+    result's own covariance for the target position.
+    """
+    Ad = np.eye(6)
+    Ad[:3, 3:] = skew(result.T_sensor_target[:3, 3])
+    cov = Ad @ result.covariance @ Ad.T
+    return 0.5 * (cov + cov.T)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,6 +424,22 @@ def _kernel_weights(z: FloatArray, kind: str, k: float) -> FloatArray:
     return np.ones_like(a)
 
 
+def _apply_centered(T: FloatArray, xi: FloatArray) -> FloatArray:
+    """``T_new``: target translated by ``V rho`` and rotated by ``exp(phi)`` about its own origin."""
+    dT = se3_exp(xi)
+    out = T.copy()
+    out[:3, :3] = dT[:3, :3] @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + dT[:3, 3]
+    return out
+
+
+def _centered_step(T_new: FloatArray, T_old: FloatArray) -> FloatArray:
+    """Twist ``xi`` with ``_apply_centered(T_old, xi) ~= T_new`` (translation and rotation parts)."""
+    dR = T_new[:3, :3] @ T_old[:3, :3].T
+    phi = se3_log(np.block([[dR, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))[3:]
+    return np.concatenate([T_new[:3, 3] - T_old[:3, 3], phi])
+
+
 def icp(
     points: npt.ArrayLike,
     model: TargetModel | ModelCloud,
@@ -413,6 +451,16 @@ def icp(
     directions: npt.ArrayLike | None = None,
 ) -> RegistrationResult:
     """Align a scan to the target model by ICP, from an initial pose.
+
+    Two phases share the iteration budget. The *coarse* phase keeps the initial gate
+    ``max_correspondence_m`` and takes closed-form point-to-point steps with plain noise-weighted
+    least squares (and trimming): its basin is wide, and a misaligned face seen by a minority of
+    points still pulls the pose in. Once its steps are below a quarter of the gate floor, the
+    *fine* phase (point-to-plane Gauss-Newton by default) shrinks the gate to three times the median correspondence distance
+    (never below the floor ``max(min_correspondence_m, 4 sigma, 1.5 model spacing)``) and applies
+    the robust kernel, which rejects returns from parts missing from the model. Correspondences
+    whose model normal faces away from the sensor by more than ``back_facing_cos`` are dropped
+    (the scan only sees front faces; this matters on thin panels).
 
     Args:
         points: (N, 3) scan points [m], sensor frame. Non-finite rows are ignored.
@@ -472,6 +520,11 @@ def icp(
     gate = max(cfg.max_correspondence_m, gate_floor)
     trim = float(cfg.trim_fraction)
     kernel_k = float(cfg.kernel_scale)
+    back_cos = float(cfg.back_facing_cos)
+    # The coarse phase hands over once its steps are a fraction of the gate floor.
+    coarse_tol_t = max(10.0 * cfg.translation_tol_m, 0.25 * gate_floor)
+    coarse_tol_r = max(10.0 * cfg.rotation_tol_rad, 0.25 * gate_floor / mc.radius)
+    fine = False
     prev_cost = np.inf
     converged = False
     reason = ""
@@ -486,24 +539,29 @@ def icp(
             thr = float(np.quantile(dist[valid], 1.0 - trim))
             if thr > gate_floor:
                 valid &= dist <= thr
+        j = idx[valid]
+        n_s = mc.normals[j] @ R.T
+        front = np.einsum("ij,ij->i", n_s, D[valid]) < back_cos
+        valid[valid] = front
         nv = int(np.count_nonzero(valid))
         if nv < min_pts:
             return RegistrationResult.failure(
                 f"{nv} correspondences within {gate:.3g} m at iteration {it}; ICP needs >= {min_pts}",
                 T, n_points=n, time_s=time.perf_counter() - t_start, iterations=it,
             )
-        j = idx[valid]
+        j = j[front]
+        n_s = n_s[front]
         p = P[valid]
-        n_s = mc.normals[j] @ R.T
         s_s = mc.points[j] @ R.T + t
         r = np.einsum("ij,ij->i", n_s, p - s_s)
         var = _residual_variance(sig[valid], n_s, D[valid], floor_frac)
-        w = _kernel_weights(r / np.sqrt(var), cfg.robust_kernel, kernel_k) / var
+        w = 1.0 / var
+        if fine:
+            w = w * _kernel_weights(r / np.sqrt(var), cfg.robust_kernel, kernel_k)
         cost = float(np.sum(w * r * r) / np.sum(w * var))
-        T_prev = T
-        if meth == "point_to_plane":
-            # Linearise about the current target origin, not the sensor origin: a finite rotation
-            # step then does not swing the target about a lever arm of the full range.
+        if meth == "point_to_plane" and fine:
+            # Linearised about the target origin, not the sensor origin: a finite rotation step
+            # then does not swing the target about a lever arm of the full range.
             A = _jacobian_rows(s_s - t, n_s)
             Aw = A * w[:, None]
             Hm = Aw.T @ A
@@ -513,20 +571,25 @@ def icp(
                 xi = np.linalg.solve(Hm + damp * np.eye(6), g)
             except np.linalg.LinAlgError:
                 xi = np.linalg.lstsq(Hm, g, rcond=None)[0]
-            dT = se3_exp(xi)
-            T = T.copy()
-            T[:3, :3] = dT[:3, :3] @ R
-            T[:3, 3] = t + dT[:3, 3]
+            T = _apply_centered(T, xi)
         else:
-            # Closed-form step on point pairs; weights from the same noise model, with the kernel
-            # applied to the point-to-point distance.
-            e = np.linalg.norm(p - s_s, axis=1)
-            wp = _kernel_weights(e / sig[valid], cfg.robust_kernel, kernel_k) / sig[valid] ** 2
+            # Closed-form step on point pairs, weighted by the same noise model (the kernel acts on
+            # the point-to-point distance).
+            sv = sig[valid]
+            wp = 1.0 / sv**2
+            if fine:
+                e = np.linalg.norm(p - s_s, axis=1)
+                wp = wp * _kernel_weights(e / sv, cfg.robust_kernel, kernel_k)
+            T_old = T
             T = kabsch(mc.points[j], p, weights=wp)
-            xi = se3_log(T @ invert(T_prev))
+            xi = _centered_step(T, T_old)
         step_t = float(np.linalg.norm(xi[:3]))
         step_r = float(np.linalg.norm(xi[3:]))
-        # Adapt the gate: three times the median distance, never below the noise/model floor.
+        if not fine:
+            if step_t < coarse_tol_t and step_r < coarse_tol_r:
+                fine = True
+                prev_cost = np.inf
+            continue
         new_gate = max(gate_floor, min(gate, 3.0 * float(np.median(dist[valid]))))
         gate_settled = new_gate >= 0.98 * gate
         gate = new_gate
@@ -541,34 +604,54 @@ def icp(
             break
     if not converged and not reason:
         reason = f"not converged after {cfg.max_iterations} iterations"
+    return _finish(P, sig, D, mc, T, gate, cfg, converged, reason, it, t_start)
 
-    # Final correspondences, fitness and the Cramer-Rao covariance at the returned pose.
+
+def _finish(
+    P: FloatArray,
+    sig: FloatArray,
+    D: FloatArray,
+    mc: ModelCloud,
+    T: FloatArray,
+    gate: float,
+    cfg: ICPConfig,
+    converged: bool,
+    reason: str,
+    iterations: int,
+    t_start: float,
+) -> RegistrationResult:
+    """Final correspondences, fitness and the Cramer-Rao covariance at the returned pose."""
+    n = P.shape[0]
     R = T[:3, :3]
     t = T[:3, 3]
-    q = (P - t) @ R
-    dist, idx = mc.kdtree.query(q, k=1, distance_upper_bound=gate, workers=1)
+    dist, idx = mc.kdtree.query((P - t) @ R, k=1, distance_upper_bound=gate, workers=1)
     inl = np.isfinite(dist)
+    j = idx[inl]
+    n_s = mc.normals[j] @ R.T
+    front = np.einsum("ij,ij->i", n_s, D[inl]) < cfg.back_facing_cos
+    inl[inl] = front
     n_in = int(np.count_nonzero(inl))
+    min_pts = max(int(cfg.min_points), 6)
     if n_in < min_pts:
         res = RegistrationResult.failure(
             f"{n_in} inliers at the final pose; ICP needs >= {min_pts}",
-            T, n_points=n, time_s=time.perf_counter() - t_start, iterations=it,
+            T, n_points=n, time_s=time.perf_counter() - t_start, iterations=iterations,
         )
         res.n_inliers = n_in
-        res.fitness = n_in / n
+        res.fitness = n_in / max(n, 1)
         return res
-    j = idx[inl]
-    n_s = mc.normals[j] @ R.T
+    j = j[front]
+    n_s = n_s[front]
     s_s = mc.points[j] @ R.T + t
     r = np.einsum("ij,ij->i", n_s, P[inl] - s_s)
-    H = information_matrix(s_s, n_s, sig[inl], D[inl], floor_frac)
+    H = information_matrix(s_s, n_s, sig[inl], D[inl], t, cfg.noise_floor_fraction)
     cov, degenerate = covariance_from_information(H, mc.radius, cfg.degeneracy_ratio)
     return RegistrationResult(
         T_sensor_target=T,
         fitness=n_in / n,
         inlier_rmse=float(np.sqrt(np.mean(r * r))),
         converged=converged,
-        iterations=it,
+        iterations=iterations,
         covariance=cov,
         degenerate_axes=degenerate,
         reason=reason,

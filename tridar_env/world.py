@@ -12,7 +12,9 @@ facing it: ``R_port_dock = diag(1, -1, -1)``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -20,7 +22,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.geometry import make_T
+from perception.geometry import invert, make_T
 from perception.state import TruthScene
 from perception.targets import TargetModel
 from tridar_env.dynamics import (
@@ -109,6 +111,14 @@ class World:
         self._q_i_chaser = np.array([1.0, 0.0, 0.0, 0.0])
         self._w_chaser = np.zeros(3)
         self.delta_v = 0.0
+        # Frames derived from the state are computed once per step (scipy Rotation objects are
+        # costly to build); the cache is cleared whenever the state changes.
+        self._memo: dict[str, Any] = {}
+
+    def _cached(self, key: str, build: Callable[[], Any]) -> Any:
+        if key not in self._memo:
+            self._memo[key] = build()
+        return self._memo[key]
 
     # ------------------------------------------------------------------ reset
     def reset(self, rng: np.random.Generator) -> None:
@@ -117,6 +127,7 @@ class World:
         ini = cfg.env.initial
         self.t = 0.0
         self.delta_v = 0.0
+        self._memo.clear()
         self.mass = ChaserMass(ch.dry_mass_kg, ch.propellant_kg, ch.isp_s, ch.max_thrust_n)
         if isinstance(self._trans, NonlinearRelativePropagator):
             self._trans.reset()
@@ -146,24 +157,38 @@ class World:
             R_i_c = err * Rotation.from_matrix(R_lc)  # inertial frame == LVLH at t = 0
             self._q_i_chaser = np.roll(R_i_c.as_quat(), 1)
             self._w_chaser = R_i_c.inv().apply([0.0, 0.0, self.n])  # co-rotating with LVLH
+        self._memo.clear()
 
     # ------------------------------------------------------------------ frames
     @property
+    def R_lvlh_target(self) -> FloatArray:
+        return self._cached("R_lt", lambda: self.target_attitude.R_lvlh_target)
+
+    @property
     def T_lvlh_target(self) -> FloatArray:
-        return make_T(self.target_attitude.R_lvlh_target)
+        return self._cached("T_lt", lambda: make_T(self.R_lvlh_target))
 
     @property
     def omega_target_lvlh(self) -> FloatArray:
         """Target angular velocity relative to LVLH, LVLH coordinates [rad/s]."""
-        return self.target_attitude.R_lvlh_target @ self.target_attitude.omega_rel_lvlh_body
+        def build() -> FloatArray:
+            if self.target_attitude.mode == "lvlh_hold":
+                return np.zeros(3)
+            lvlh_rate_body = self.R_lvlh_target.T @ np.array([0.0, 0.0, self.n])
+            return self.R_lvlh_target @ (self.target_attitude.omega_body - lvlh_rate_body)
+
+        return self._cached("w_t", build)
 
     @property
     def R_lvlh_chaser(self) -> FloatArray:
-        if not self.controlled_attitude:
-            return self.target_attitude.R_lvlh_target @ self.target.T_target_port[:3, :3] @ R_PORT_DOCK
-        lvlh_from_i = Rotation.from_rotvec([0.0, 0.0, -self.n * self.t])
-        q = self._q_i_chaser
-        return (lvlh_from_i * Rotation.from_quat([q[1], q[2], q[3], q[0]])).as_matrix()
+        def build() -> FloatArray:
+            if not self.controlled_attitude:
+                return self.R_lvlh_target @ self.target.T_target_port[:3, :3] @ R_PORT_DOCK
+            lvlh_from_i = Rotation.from_rotvec([0.0, 0.0, -self.n * self.t])
+            q = self._q_i_chaser
+            return (lvlh_from_i * Rotation.from_quat([q[1], q[2], q[3], q[0]])).as_matrix()
+
+        return self._cached("R_lc", build)
 
     @property
     def omega_chaser_lvlh(self) -> FloatArray:
@@ -174,19 +199,19 @@ class World:
 
     @property
     def T_lvlh_chaser(self) -> FloatArray:
-        return make_T(self.R_lvlh_chaser, self.state[:3])
+        return self._cached("T_lc", lambda: make_T(self.R_lvlh_chaser, self.state[:3]))
 
     @property
     def T_lvlh_sensor(self) -> FloatArray:
-        return self.T_lvlh_chaser @ self.T_chaser_sensor
+        return self._cached("T_ls", lambda: self.T_lvlh_chaser @ self.T_chaser_sensor)
 
     @property
     def T_lvlh_dock(self) -> FloatArray:
-        return self.T_lvlh_chaser @ self.T_chaser_dock
+        return self._cached("T_ld", lambda: self.T_lvlh_chaser @ self.T_chaser_dock)
 
     @property
     def T_lvlh_port(self) -> FloatArray:
-        return self.T_lvlh_target @ self.target.T_target_port
+        return self._cached("T_lp", lambda: self.T_lvlh_target @ self.target.T_target_port)
 
     @property
     def chaser_angular_velocity_body(self) -> FloatArray:
@@ -203,6 +228,7 @@ class World:
             (3,) thrust actually applied, LVLH [N] (after saturation and propellant limits).
         """
         R_lc = self.R_lvlh_chaser
+        self._memo.clear()
         thrust_lvlh = R_lc @ thrust_n if self.cfg.dynamics.chaser.thrust_frame == "body" else thrust_n
         m_before = self.mass.mass_kg
         accel, applied = self.mass.apply(thrust_lvlh, self.dt)
@@ -215,14 +241,18 @@ class World:
                 self._q_i_chaser, self._w_chaser, self.dt, tq
             )
         self.t += self.dt
+        self._memo.clear()
         return applied
 
     # ------------------------------------------------------------------ observation of truth
     def sensor_truth(self) -> SensorTruth:
         """True relative kinematics of the target in the sensor frame."""
+        return self._cached("sensor_truth", self._sensor_truth)
+
+    def _sensor_truth(self) -> SensorTruth:
         T_ls = self.T_lvlh_sensor
         R_ls = T_ls[:3, :3]
-        T_st = np.linalg.inv(T_ls) @ self.T_lvlh_target
+        T_st = invert(T_ls) @ self.T_lvlh_target
         w_c = self.omega_chaser_lvlh
         r_cs = self.R_lvlh_chaser @ self.T_chaser_sensor[:3, 3]
         v_s = self.state[3:] + np.cross(w_c, r_cs)
@@ -245,6 +275,9 @@ class World:
 
     def contact(self) -> ContactState:
         """Relative docking geometry (truth)."""
+        return self._cached("contact", self._contact)
+
+    def _contact(self) -> ContactState:
         T_lp = self.T_lvlh_port
         T_ld = self.T_lvlh_dock
         R_lp = T_lp[:3, :3]

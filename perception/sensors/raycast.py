@@ -1,0 +1,105 @@
+"""Ray casting against a target mesh with Embree (through trimesh), shared by the sensors.
+
+Embree returns the first triangle each ray hits; the range is then recomputed in float64 from the
+triangle's plane (Embree works in float32), which is exact for a flat facet and cheap. Rays are
+given in the target frame; a rigid transform preserves distances, so the range along a unit
+direction is the same in the sensor frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.targets import TargetModel
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+__all__ = ["face_planes", "cast_rays", "sphere_hits"]
+
+
+def face_planes(target: TargetModel) -> tuple[FloatArray, FloatArray]:
+    """Per-face unit normals (F, 3) and plane offsets ``n . v0`` (F,) [m], cached on the target."""
+
+    def build() -> tuple[FloatArray, FloatArray]:
+        normals = np.ascontiguousarray(target.mesh.face_normals, dtype=np.float64)
+        v0 = np.asarray(target.mesh.triangles[:, 0, :], dtype=np.float64)
+        offsets = np.einsum("ij,ij->i", normals, v0)
+        normals.setflags(write=False)
+        offsets.setflags(write=False)
+        return normals, offsets
+
+    return target.cached(("sensor_face_planes",), build)  # type: ignore[no-any-return]
+
+
+def cast_rays(
+    target: TargetModel, origins_target: npt.ArrayLike, directions_target: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """First hit of every ray; one Embree call for all rays.
+
+    Args:
+        target: the target model.
+        origins_target: (3,) one origin for all rays or (M, 3) per-ray origins [m], target frame.
+        directions_target: (M, 3) unit directions, target frame.
+
+    Returns:
+        ``face`` (M,) int64 index of the face hit, -1 for a miss; ``rng`` (M,) range along the ray
+        [m], NaN for a miss; ``cos_incidence`` (M,) cosine between the ray and the face's outward
+        normal reversed (1 at normal incidence, <= 0 for a back face), NaN for a miss.
+    """
+    d = np.asarray(directions_target, dtype=np.float64).reshape(-1, 3)
+    o = np.asarray(origins_target, dtype=np.float64)
+    m = d.shape[0]
+    face = np.full(m, -1, dtype=np.int64)
+    rng = np.full(m, np.nan)
+    cos_inc = np.full(m, np.nan)
+    if m == 0:
+        return face, rng, cos_inc
+    single = o.ndim == 1
+    o_rays = np.broadcast_to(o, d.shape) if single else o.reshape(-1, 3)
+    first = np.asarray(target.ray.intersects_first(o_rays, d), dtype=np.int64)
+    idx = np.flatnonzero(first >= 0)
+    if idx.size == 0:
+        return face, rng, cos_inc
+    normals, offsets = face_planes(target)
+    f = first[idx]
+    n = normals[f]
+    denom = np.einsum("ij,ij->i", n, d[idx])
+    if single:
+        num = offsets[f] - normals[f] @ o
+    else:
+        num = offsets[f] - np.einsum("ij,ij->i", n, o_rays[idx])
+    ok = np.abs(denom) > 1e-12
+    t = np.divide(num, denom, out=np.full(idx.size, np.nan), where=ok)
+    ok &= t > 0
+    idx, f, t, denom = idx[ok], f[ok], t[ok], denom[ok]
+    face[idx] = f
+    rng[idx] = t
+    cos_inc[idx] = -denom
+    return face, rng, cos_inc
+
+
+def sphere_hits(directions: FloatArray, center: npt.ArrayLike, radius: float) -> FloatArray:
+    """Range [m] at which rays from the origin enter a sphere (NaN for a miss).
+
+    Args:
+        directions: (M, 3) unit directions from the origin.
+        center: (3,) sphere centre [m], same frame.
+        radius: [m].
+
+    Returns:
+        (M,) first positive range to the sphere surface, NaN where a ray misses it.
+    """
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    b = directions @ c
+    cc = float(c @ c) - radius * radius
+    disc = b * b - cc
+    out = np.full(directions.shape[0], np.nan)
+    hit = disc >= 0
+    sq = np.sqrt(np.where(hit, disc, 0.0))
+    if cc < 0:  # origin inside the sphere: every ray leaves through its far side
+        return b + sq
+    hit &= b > 0
+    out[hit] = (b - sq)[hit]
+    return out

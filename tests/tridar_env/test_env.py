@@ -1,0 +1,233 @@
+"""DockingEnv: the Gymnasium contract, determinism, rewards, terminations, rendering, vector envs."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import tridar_env
+from agents.glideslope import GlideslopeController, GlideslopeGains
+from perception.config import ConfigError
+from tridar_env.env import OBS_DIM, observation_slices
+
+IDS = list(tridar_env.ENV_IDS)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_gymnasium_and_sb3_checkers_pass_without_warnings(env_id: str) -> None:
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make(env_id, perception="truth", render_mode="rgb_array")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+        sb3_check_env(env.unwrapped, warn=True)
+    assert env.observation_space.shape == (OBS_DIM,)
+    assert env.observation_space.dtype == np.float32 and env.action_space.dtype == np.float32
+    assert np.all(np.isfinite(env.observation_space.low)) and np.all(np.isfinite(env.observation_space.high))
+
+
+def _rollout(env: gym.Env, seed: int, n: int, policy=None) -> list[tuple]:
+    obs, _ = env.reset(seed=seed)
+    env.action_space.seed(seed)
+    out = [(obs.copy(), 0.0)]
+    for _ in range(n):
+        a = policy(obs) if policy else env.action_space.sample()
+        obs, r, term, trunc, _ = env.step(a)
+        out.append((obs.copy(), r))
+        if term or trunc:
+            break
+    return out
+
+
+@pytest.mark.parametrize("perception", ["truth", "truth+noise"])
+def test_same_seed_identical_rollouts(perception: str) -> None:
+    a = _rollout(gym.make("TriDAR/FinalApproach-v0", perception=perception), 7, 60)
+    b = _rollout(gym.make("TriDAR/FinalApproach-v0", perception=perception), 7, 60)
+    c = _rollout(gym.make("TriDAR/FinalApproach-v0", perception=perception), 8, 60)
+    assert len(a) == len(b)
+    for (oa, ra), (ob, rb) in zip(a, b):
+        np.testing.assert_array_equal(oa, ob)
+        assert ra == rb
+    assert not np.array_equal(a[1][0], c[1][0])
+
+
+def test_tumbling_rollouts_identical() -> None:
+    a = _rollout(gym.make("TriDAR/TumblingTarget-v0", perception="truth+noise"), 3, 15)
+    b = _rollout(gym.make("TriDAR/TumblingTarget-v0", perception="truth+noise"), 3, 15)
+    for (oa, ra), (ob, rb) in zip(a, b):
+        np.testing.assert_array_equal(oa, ob)
+        assert ra == rb
+
+
+def test_reward_terms_sum_to_reward() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    names = set()
+    for _ in range(50):
+        _, r, term, _, info = env.step(env.action_space.sample())
+        terms = {k: v for k, v in info.items() if k.startswith("reward_")}
+        names |= set(terms)
+        assert r == pytest.approx(sum(terms.values()), abs=1e-12)
+        if term:
+            break
+    assert names == {
+        "reward_progress", "reward_alignment", "reward_speed_limit", "reward_fuel",
+        "reward_success", "reward_collision", "reward_corridor",
+    }
+
+
+def _fly(env_id: str, seed: int, gains: GlideslopeGains | None = None, **kw) -> dict:
+    env = gym.make(env_id, perception="truth", **kw)
+    obs, info = env.reset(seed=seed)
+    ctl = GlideslopeController(env.unwrapped.cfg, gains)
+    total = 0.0
+    while True:
+        obs, r, term, trunc, info = env.step(ctl(obs))
+        total += r
+        assert np.all(np.isfinite(obs))
+        if term or trunc:
+            info["return"] = total
+            info["truncated"] = trunc
+            return info
+
+
+def test_scripted_truth_approach_docks_inside_envelope() -> None:
+    info = _fly("TriDAR/FinalApproach-v0", seed=0)
+    assert info["termination"] == "docked"
+    c = info["contact"]
+    assert 0.05 <= c.closing_speed <= 0.10
+    assert c.lateral_offset <= 0.10 and c.lateral_speed <= 0.04
+    assert info["reward_success"] > 0 and info["return"] > 0
+
+
+def test_too_fast_approach_is_a_collision() -> None:
+    info = _fly("TriDAR/FinalApproach-v0", seed=0, gains=GlideslopeGains(v_final=0.3, slope=0.05, v_max=0.5))
+    assert info["termination"] == "collision"
+    assert info["contact"].closing_speed > 0.10
+    assert info["reward_collision"] < 0
+
+
+def _constant(env_id: str, action, seed: int = 0, **kw) -> dict:
+    env = gym.make(env_id, perception="truth", **kw)
+    env.reset(seed=seed)
+    for _ in range(100_000):
+        _, _, term, trunc, info = env.step(np.asarray(action, dtype=np.float32))
+        if term or trunc:
+            return info
+    raise AssertionError("episode did not end")
+
+
+def test_every_termination_cause_is_reachable() -> None:
+    # Backing away at full thrust leaves the bounds.
+    info = _constant("TriDAR/FinalApproach-v0", [0, 0, -1], env__max_range_m=40.0)
+    assert info["termination"] == "out_of_bounds"
+    # A lateral burn leaves the approach corridor.
+    info = _constant("TriDAR/FinalApproach-v0", [1, 0, 0])
+    assert info["termination"] == "corridor_exit"
+    # A nearly empty tank runs dry.
+    info = _constant("TriDAR/FinalApproach-v0", [0, 1, 0], dynamics__chaser__propellant_kg=0.01,
+                     env__corridor_half_angle_deg=None)
+    assert info["termination"] == "out_of_fuel"
+    assert info["propellant_kg"] == 0.0
+
+
+def test_hull_collision_detected_by_mesh_distance() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+    env.reset(seed=0)
+    w = env.unwrapped.world
+    # Put the chaser centre 0.3 m off the lab module's hull (hull radius 0.5 m), far off the port axis.
+    pts, nrm = env.unwrapped.target.sample_surface(2000, seed=0)
+    i = int(np.argmin(pts[:, 1]))  # aft end of the lab, opposite the port
+    p_lvlh = w.T_lvlh_target[:3, :3] @ (pts[i] + 0.3 * nrm[i])
+    w.state = np.concatenate([p_lvlh, np.zeros(3)])
+    w._memo.clear()
+    assert w.hull_clearance() < 0
+    _, _, term, _, info = env.step(np.zeros(3, dtype=np.float32))
+    assert term and info["termination"] == "collision"
+
+
+def test_bad_actions_and_call_order() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+    with pytest.raises((RuntimeError, gym.error.ResetNeeded)):
+        env.step(np.zeros(3, dtype=np.float32))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([np.nan, 0, 0], dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(4, dtype=np.float32))
+    _, _, _, _, info = env.step(np.array([3.0, -2.0, 0.5], dtype=np.float32))
+    assert info["clipped_actions"] == 2
+
+
+def test_unknown_config_keys_fail_at_make() -> None:
+    with pytest.raises(ConfigError, match="env.frame_skp"):
+        gym.make("TriDAR/FinalApproach-v0", config={"env__frame_skp": 2})
+    with pytest.raises(ConfigError, match="perception"):
+        gym.make("TriDAR/FinalApproach-v0", perception="telepathy")
+
+
+def test_observation_never_nan_over_random_rollouts() -> None:
+    for env_id in IDS:
+        env = gym.make(env_id, perception="truth+noise")
+        for seed in range(2):
+            for obs, r in _rollout(env, seed, 200):
+                assert np.all(np.isfinite(obs)) and np.isfinite(r)
+                assert env.observation_space.contains(obs)
+
+
+def test_observation_matches_truth_geometry() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+    obs, info = env.reset(seed=4)
+    s = observation_slices()
+    c = info["contact"]
+    p = obs[s["port_position_dock"]]
+    assert p[2] == pytest.approx(c.axial_distance, abs=1e-4)
+    assert np.hypot(p[0], p[1]) == pytest.approx(c.lateral_offset, abs=1e-4)
+    np.testing.assert_allclose(obs[s["q_dock_port"]], [0, 1, 0, 0], atol=1e-6)  # facing the port
+    np.testing.assert_array_equal(obs[s["mode_onehot"]], [0, 0, 1])
+    assert obs[s["fuel_fraction"]][0] == 1.0
+
+
+def test_render_rgb_array_shows_target() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth", render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step(np.zeros(3, dtype=np.float32))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    # The camera panel (right half) has shaded target pixels (grey, neither black nor white).
+    right = frame[:, frame.shape[1] // 2 :].astype(int)
+    grey = (np.abs(right[..., 0] - right[..., 1]) < 4) & (right[..., 0] > 40) & (right[..., 0] < 230)
+    assert grey.sum() > 200
+
+
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_vector_envs_step(mode: str) -> None:
+    envs = gym.make_vec("TriDAR/FinalApproach-v0", num_envs=2, vectorization_mode=mode,
+                        vector_kwargs={} if mode == "sync" else {"context": "spawn"},
+                        perception="truth")
+    obs, _ = envs.reset(seed=[1, 2])
+    assert obs.shape == (2, OBS_DIM)
+    for _ in range(3):
+        obs, r, term, trunc, _ = envs.step(np.zeros((2, 3), dtype=np.float32))
+    assert np.all(np.isfinite(obs)) and r.shape == (2,)
+    envs.close()
+
+
+@pytest.mark.slow
+def test_sb3_subproc_vec_env_pickles() -> None:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    # "module:id" makes each spawned worker import tridar_env (which registers the ids) first.
+    venv = make_vec_env("tridar_env:TriDAR/FinalApproach-v0", n_envs=2, vec_env_cls=SubprocVecEnv,
+                        env_kwargs={"perception": "truth"}, vec_env_kwargs={"start_method": "spawn"})
+    obs = venv.reset()
+    obs, r, done, _ = venv.step(np.zeros((2, 3), dtype=np.float32))
+    assert obs.shape == (2, OBS_DIM) and np.all(np.isfinite(obs))
+    venv.close()

@@ -1,0 +1,169 @@
+"""One closed-loop episode: a controller (or policy) flies an env; a tidy record comes back.
+
+Used by the demo, ``tridar-env run``, campaigns and ``evaluate`` so that every summary is computed
+the same way. The controller sees only observations; truth from ``info`` goes into the log.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import numpy.typing as npt
+
+Policy = Callable[[npt.NDArray[np.float32]], npt.ArrayLike]
+
+#: Columns of the per-step log.
+LOG_COLUMNS = (
+    "t", "mode", "range_true", "x_lvlh", "y_lvlh", "z_lvlh", "vx_lvlh", "vy_lvlh", "vz_lvlh",
+    "est_pos_err_m", "est_att_err_deg", "n_points", "reward", "propellant_kg", "delta_v",
+    "ax", "ay", "az", "axial_distance", "lateral_offset", "closing_speed",
+)
+
+
+@dataclass
+class EpisodeResult:
+    """Outcome and statistics of one episode.
+
+    Attributes:
+        seed: reset seed.
+        outcome: ``docked``, a failure cause (``collision``, ``out_of_bounds``, ``out_of_fuel``,
+            ``corridor_exit``) or ``timeout``.
+        steps, sim_time_s, delta_v_m_s, propellant_used_kg, episode_return: totals.
+        contact: final contact geometry (``ContactState`` fields) at the end.
+        max_pos_err_m, rms_pos_err_m, max_att_err_deg, rms_att_err_deg: estimation errors over
+            the steps with a valid pose.
+        time_in_mode_s: seconds spent in each TriDAR mode.
+        acquisitions: number of search -> tracking transitions.
+        log: per-step columns (:data:`LOG_COLUMNS`) when ``keep_log``.
+    """
+
+    seed: int
+    outcome: str
+    steps: int
+    sim_time_s: float
+    delta_v_m_s: float
+    propellant_used_kg: float
+    episode_return: float
+    contact: dict[str, float]
+    max_pos_err_m: float
+    rms_pos_err_m: float
+    max_att_err_deg: float
+    rms_att_err_deg: float
+    time_in_mode_s: dict[str, float]
+    acquisitions: int
+    log: dict[str, list[Any]] = field(default_factory=dict, repr=False)
+
+    @property
+    def docked(self) -> bool:
+        return self.outcome == "docked"
+
+    def row(self) -> dict[str, Any]:
+        """A flat dict for tables and Parquet (no per-step log)."""
+        d = asdict(self)
+        d.pop("log")
+        contact = d.pop("contact")
+        modes = d.pop("time_in_mode_s")
+        d.update({f"contact_{k}": v for k, v in contact.items()})
+        d.update({f"time_{k}_s": modes.get(k, 0.0) for k in ("bearing", "search", "tracking")})
+        return d
+
+
+def _nan_stats(values: list[float]) -> tuple[float, float]:
+    a = np.asarray([v for v in values if np.isfinite(v)], dtype=np.float64)
+    if a.size == 0:
+        return float("nan"), float("nan")
+    return float(a.max()), float(np.sqrt(np.mean(a**2)))
+
+
+def run_episode(
+    env: gym.Env,
+    policy: Policy,
+    seed: int,
+    *,
+    keep_log: bool = False,
+    max_steps: int | None = None,
+    on_step: Callable[[int], None] | None = None,
+    on_frame: Callable[[npt.NDArray[np.uint8]], None] | None = None,
+) -> EpisodeResult:
+    """Fly one episode and summarise it.
+
+    Args:
+        env: a (possibly wrapped) ``DockingEnv``.
+        policy: ``obs -> action``; a controller object with ``reset()`` is reset first.
+        seed: the reset seed (the whole episode is a function of it).
+        keep_log: keep the per-step log in the result.
+        max_steps: stop (outcome ``timeout``) after this many steps even without truncation.
+        on_step: called with the step index (progress bars).
+        on_frame: called with ``env.render()`` output each step (video), when rendering.
+    """
+    reset = getattr(policy, "reset", None)
+    if callable(reset):
+        reset()
+    obs, info = env.reset(seed=seed)
+    prop0 = float(info["propellant_kg"])
+    log: dict[str, list[Any]] = {c: [] for c in LOG_COLUMNS}
+    pos_err: list[float] = []
+    att_err: list[float] = []
+    modes: dict[str, float] = {}
+    dt = float(env.unwrapped.cfg.env.frame_period_s * env.unwrapped.cfg.env.frame_skip)
+    acquisitions = 0
+    prev_mode = info["mode"]
+    total = 0.0
+    steps = 0
+    outcome = "timeout"
+    while True:
+        action = np.asarray(policy(obs), dtype=np.float32)
+        obs, reward, terminated, truncated, info = env.step(action)
+        steps += 1
+        total += float(reward)
+        mode = info["mode"]
+        modes[mode] = modes.get(mode, 0.0) + dt
+        if mode == "tracking" and prev_mode != "tracking":
+            acquisitions += 1
+        prev_mode = mode
+        pos_err.append(info["estimate_position_error_m"])
+        att_err.append(info["estimate_attitude_error_deg"])
+        if keep_log:
+            r, v, c = info["truth_r_lvlh"], info["truth_v_lvlh"], info["contact"]
+            row = (
+                info["t"], mode, float(np.linalg.norm(info["truth_T_sensor_target"][:3, 3])),
+                *r, *v, info["estimate_position_error_m"], info["estimate_attitude_error_deg"],
+                info["n_points"], float(reward), info["propellant_kg"], info["delta_v"],
+                *np.asarray(action[:3], dtype=float), c.axial_distance, c.lateral_offset,
+                c.closing_speed,
+            )
+            for k, val in zip(LOG_COLUMNS, row):
+                log[k].append(val)
+        if on_step is not None:
+            on_step(steps)
+        if on_frame is not None:
+            frame = env.render()
+            if frame is not None:
+                on_frame(frame)
+        if terminated or truncated or (max_steps is not None and steps >= max_steps):
+            outcome = info["termination"] if terminated else "timeout"
+            break
+    mp, rp = _nan_stats(pos_err)
+    ma, ra = _nan_stats(att_err)
+    return EpisodeResult(
+        seed=int(seed), outcome=outcome, steps=steps, sim_time_s=float(info["t"]),
+        delta_v_m_s=float(info["delta_v"]), propellant_used_kg=prop0 - float(info["propellant_kg"]),
+        episode_return=total, contact=asdict(info["contact"]),
+        max_pos_err_m=mp, rms_pos_err_m=rp, max_att_err_deg=ma, rms_att_err_deg=ra,
+        time_in_mode_s=modes, acquisitions=acquisitions, log=log if keep_log else {},
+    )
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95% by default)."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = successes / n
+    den = 1.0 + z**2 / n
+    centre = (p + z**2 / (2 * n)) / den
+    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / den
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))

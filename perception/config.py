@@ -252,7 +252,7 @@ class ICPConfig(StrictModel):
 
     method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
     model_points: Annotated[int, Field(ge=100)] = 20_000
-    max_iterations: Annotated[int, Field(ge=1)] = 30
+    max_iterations: Annotated[int, Field(ge=1)] = 50
     max_correspondence_m: PositiveFloat = Field(0.5, description="initial gating distance")
     min_correspondence_m: PositiveFloat = Field(0.02, description="floor of the adaptive gate")
     trim_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.1
@@ -270,6 +270,12 @@ class ICPConfig(StrictModel):
     )
     degeneracy_ratio: Annotated[float, Field(gt=0, lt=1)] = Field(
         1e-4, description="information eigenvalue ratio below which a direction is unobservable"
+    )
+    model_noise_fraction: NonNegFloat = Field(
+        0.1, description="model resolution error as a fraction of the model sample spacing"
+    )
+    plane_candidates: Annotated[int, Field(ge=1, le=16)] = Field(
+        3, description="fine phase: nearest samples among which the best-fitting plane is matched"
     )
     back_facing_cos: Annotated[float, Field(ge=-1, le=1)] = Field(
         0.3, description="drop matches whose model normal . ray direction exceeds this (back faces)"
@@ -323,8 +329,14 @@ class PipelineConfig(StrictModel):
     )
     icp: ICPConfig = ICPConfig()
     pah: PAHConfig = PAHConfig()
-    process_noise_accel: NonNegFloat = Field(1e-4, description="[m/s^2/sqrt(Hz)]")
-    process_noise_angacc: NonNegFloat = Field(1e-4, description="[rad/s^2/sqrt(Hz)]")
+    process_noise_accel: PositiveFloat = Field(
+        0.02, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
+    )
+    process_noise_angacc: PositiveFloat = Field(0.002, description="[rad/s^2/sqrt(Hz)]")
+    measurement_floor_m: NonNegFloat = Field(
+        0.005, description="added to the registration's position sigma (model error, TOF bias)"
+    )
+    measurement_floor_deg: NonNegFloat = Field(0.1, description="added attitude sigma [deg]")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -307,10 +307,14 @@ def _jacobian_rows(s_rel: FloatArray, n_sensor: FloatArray) -> FloatArray:
 
 
 def _residual_variance(
-    sig: FloatArray, n_sensor: FloatArray, d_sensor: FloatArray, floor_fraction: float
+    sig: FloatArray,
+    n_sensor: FloatArray,
+    d_sensor: FloatArray,
+    floor_fraction: float,
+    model_sigma: float = 0.0,
 ) -> FloatArray:
     cos = np.einsum("ij,ij->i", n_sensor, d_sensor)
-    return sig**2 * (cos**2 + floor_fraction**2)
+    return sig**2 * (cos**2 + floor_fraction**2) + model_sigma**2
 
 
 def information_matrix(
@@ -320,16 +324,18 @@ def information_matrix(
     directions: npt.ArrayLike,
     center: npt.ArrayLike,
     floor_fraction: float = 0.2,
+    model_sigma_m: float = 0.0,
 ) -> FloatArray:
     """Point-to-plane Fisher information ``sum_i A_i^T A_i / var_i`` of a set of surface points.
 
     The twist is the one of :attr:`RegistrationResult.covariance`: a translation ``rho`` of the
     target origin and a rotation ``phi`` about it, both along sensor axes.
     ``A_i = [n_i, (s_i - c) x n_i]`` is the derivative of the point-to-plane residual with respect
-    to it; the residual's noise variance is ``var_i = sigma_i^2 ((n_i . d_i)^2 + f^2)``: the range
-    noise along the ray ``d_i`` projected on the normal, plus a floor ``f sigma_i`` so grazing
-    points (where the projection vanishes but beam footprint and model facets do not) are not
-    given unbounded weight.
+    to it; the residual's noise variance is
+    ``var_i = sigma_i^2 ((n_i . d_i)^2 + f^2) + sigma_model^2``: the range noise along the ray
+    ``d_i`` projected on the normal, plus a floor ``f sigma_i`` so grazing points (where the
+    projection vanishes but the beam footprint does not) are not given unbounded weight, plus the
+    model's own resolution error (a match on a neighbouring facet of a discrete model).
 
     Args:
         points_model_sensor: (K, 3) matched model surface points [m], sensor frame.
@@ -338,6 +344,7 @@ def information_matrix(
         directions: (K, 3) unit ray directions, sensor frame.
         center: (3,) target origin in the sensor frame [m] (the pivot ``c``).
         floor_fraction: ``f`` above.
+        model_sigma_m: ``sigma_model`` above [m].
 
     Returns:
         (6, 6) information matrix [1/m^2, 1/(m rad), 1/rad^2].
@@ -348,7 +355,7 @@ def information_matrix(
     c = np.asarray(center, dtype=np.float64).reshape(3)
     sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (S.shape[0],))
     A = _jacobian_rows(S - c, Nn)
-    w = 1.0 / _residual_variance(sig, Nn, D, floor_fraction)
+    w = 1.0 / _residual_variance(sig, Nn, D, floor_fraction, model_sigma_m)
     return (A * w[:, None]).T @ A
 
 
@@ -385,13 +392,13 @@ def covariance_from_information(
     inv = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, lam))
     cov = S @ ((V * inv) @ V.T) @ S
     names: set[str] = set()
-    if np.any(weak):
-        # Unobservable directions get the huge variance along their own (unscaled) directions.
-        Vw = S @ V[:, weak]
-        Vw /= np.linalg.norm(Vw, axis=0, keepdims=True)
-        cov = cov + FAILURE_VARIANCE * (Vw @ Vw.T)
-        for k in np.flatnonzero(weak):
-            names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
+    for k in np.flatnonzero(weak):
+        names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
+    # The pseudo-inverse is blind along unobservable directions; the named axes get the huge
+    # variance on their diagonal instead (other axes keep their bound).
+    for a in names:
+        i = AXIS_NAMES.index(a)
+        cov[i, i] += FAILURE_VARIANCE
     cov = 0.5 * (cov + cov.T)
     return cov, [a for a in AXIS_NAMES if a in names]
 
@@ -424,6 +431,25 @@ def _kernel_weights(z: FloatArray, kind: str, k: float) -> FloatArray:
     return np.ones_like(a)
 
 
+def _best_plane_match(
+    mc: ModelCloud, q: FloatArray, gate: float, k: int
+) -> tuple[FloatArray, npt.NDArray[np.intp]]:
+    """Among the ``k`` nearest samples, the one whose tangent plane passes closest to the point.
+
+    Near an edge the nearest sample often lies on the neighbouring face; its plane is wrong for the
+    point and biases the pose by a fraction of the model spacing. Returns the Euclidean distance to
+    the chosen sample (inf where none is within ``gate``) and its index.
+    """
+    dist, idx = mc.kdtree.query(q, k=k, distance_upper_bound=gate, workers=1)
+    ok = np.isfinite(dist)
+    safe = np.where(ok, idx, 0)
+    r = np.abs(np.einsum("ijk,ijk->ij", mc.normals[safe], q[:, None, :] - mc.points[safe]))
+    r = np.where(ok, r, np.inf)
+    best = np.argmin(r, axis=1)
+    rows = np.arange(q.shape[0])
+    return dist[rows, best], idx[rows, best]
+
+
 def _apply_centered(T: FloatArray, xi: FloatArray) -> FloatArray:
     """``T_new``: target translated by ``V rho`` and rotated by ``exp(phi)`` about its own origin."""
     dT = se3_exp(xi)
@@ -453,9 +479,10 @@ def icp(
     """Align a scan to the target model by ICP, from an initial pose.
 
     Two phases share the iteration budget. The *coarse* phase keeps the initial gate
-    ``max_correspondence_m`` and takes closed-form point-to-point steps with plain noise-weighted
-    least squares (and trimming): its basin is wide, and a misaligned face seen by a minority of
-    points still pulls the pose in. Once its steps are below a quarter of the gate floor, the
+    ``max_correspondence_m``, trims, down-weights far matches softly (Cauchy, scaled by 1.5 times
+    the median distance), and adds the
+    point-to-point residual to the plane residual (point-to-point method: Kabsch steps): its basin
+    is wide, and a misaligned face seen by a minority of points still pulls the pose in. Once its steps are below a quarter of the gate floor, the
     *fine* phase (point-to-plane Gauss-Newton by default) shrinks the gate to three times the median correspondence distance
     (never below the floor ``max(min_correspondence_m, 4 sigma, 1.5 model spacing)``) and applies
     the robust kernel, which rejects returns from parts missing from the model. Correspondences
@@ -473,8 +500,10 @@ def icp(
         config: tuning; defaults of :class:`~perception.config.ICPConfig` when None.
         directions: (N, 3) unit ray directions [sensor frame] along which each point's range
             noise acts. Default: ``points / |points|`` (rays from the sensor origin). They set the
-            point-to-plane residual variance ``sigma_i^2 ((n_i . d_i)^2 + f^2)`` used both to weight
-            the solve and in the covariance, ``f = config.noise_floor_fraction``.
+            point-to-plane residual variance ``sigma_i^2 ((n_i . d_i)^2 + f^2) + sigma_model^2``
+            used both to weight the solve and in the covariance, with
+            ``f = config.noise_floor_fraction`` and ``sigma_model = config.model_noise_fraction *``
+            the model spacing (see :func:`information_matrix`).
 
     Returns:
         A :class:`RegistrationResult`; ``converged=False`` with a ``reason`` (and the initial pose)
@@ -516,6 +545,7 @@ def icp(
         )
 
     floor_frac = float(cfg.noise_floor_fraction)
+    model_sig = float(cfg.model_noise_fraction) * mc.spacing
     gate_floor = max(cfg.min_correspondence_m, 4.0 * float(np.median(sig)), 1.5 * mc.spacing)
     gate = max(cfg.max_correspondence_m, gate_floor)
     trim = float(cfg.trim_fraction)
@@ -524,6 +554,7 @@ def icp(
     # The coarse phase hands over once its steps are a fraction of the gate floor.
     coarse_tol_t = max(10.0 * cfg.translation_tol_m, 0.25 * gate_floor)
     coarse_tol_r = max(10.0 * cfg.rotation_tol_rad, 0.25 * gate_floor / mc.radius)
+    n_candidates = int(cfg.plane_candidates)
     fine = False
     prev_cost = np.inf
     converged = False
@@ -533,7 +564,10 @@ def icp(
         R = T[:3, :3]
         t = T[:3, 3]
         q = (P - t) @ R  # scan points in the target frame
-        dist, idx = mc.kdtree.query(q, k=1, distance_upper_bound=gate, workers=1)
+        if fine and n_candidates > 1:
+            dist, idx = _best_plane_match(mc, q, gate, n_candidates)
+        else:
+            dist, idx = mc.kdtree.query(q, k=1, distance_upper_bound=gate, workers=1)
         valid = np.isfinite(dist)
         if trim > 0.0 and np.count_nonzero(valid) > min_pts:
             thr = float(np.quantile(dist[valid], 1.0 - trim))
@@ -554,18 +588,39 @@ def icp(
         p = P[valid]
         s_s = mc.points[j] @ R.T + t
         r = np.einsum("ij,ij->i", n_s, p - s_s)
-        var = _residual_variance(sig[valid], n_s, D[valid], floor_frac)
+        var = _residual_variance(sig[valid], n_s, D[valid], floor_frac, model_sig)
         w = 1.0 / var
         if fine:
             w = w * _kernel_weights(r / np.sqrt(var), cfg.robust_kernel, kernel_k)
+        else:
+            # Soft (Cauchy) down-weighting on the distance, scaled by the current spread: parts
+            # missing from the model cannot drag the coarse solution, a misaligned face still pulls.
+            dv = dist[valid]
+            w = w * _kernel_weights(dv / max(gate_floor, 1.5 * float(np.median(dv))), "cauchy", 1.0)
         cost = float(np.sum(w * r * r) / np.sum(w * var))
-        if meth == "point_to_plane" and fine:
+        if meth == "point_to_plane":
             # Linearised about the target origin, not the sensor origin: a finite rotation step
             # then does not swing the target about a lever arm of the full range.
-            A = _jacobian_rows(s_s - t, n_s)
+            c = s_s - t
+            A = _jacobian_rows(c, n_s)
             Aw = A * w[:, None]
             Hm = Aw.T @ A
             g = Aw.T @ r
+            if not fine:
+                # Coarse: add the point-to-point residual e = p - s, e(xi) ~= e - [I, -c^] xi,
+                # which widens the basin of the plane metric (it cannot slide along faces).
+                e = p - s_s
+                ws = float(np.sum(w))
+                Sc = (c * w[:, None]).sum(axis=0)
+                Hpp = np.zeros((6, 6))
+                Hpp[:3, :3] = ws * np.eye(3)
+                Hpp[:3, 3:] = -skew(Sc)
+                Hpp[3:, :3] = skew(Sc)
+                cc = (c * w[:, None]).T @ c
+                Hpp[3:, 3:] = np.trace(cc) * np.eye(3) - cc
+                gpp = np.concatenate([(e * w[:, None]).sum(axis=0), (np.cross(c, e) * w[:, None]).sum(axis=0)])
+                Hm = Hm + Hpp
+                g = g + gpp
             damp = 1e-9 * float(np.max(np.diag(Hm))) + 1e-12
             try:
                 xi = np.linalg.solve(Hm + damp * np.eye(6), g)
@@ -576,7 +631,7 @@ def icp(
             # Closed-form step on point pairs, weighted by the same noise model (the kernel acts on
             # the point-to-point distance).
             sv = sig[valid]
-            wp = 1.0 / sv**2
+            wp = w.copy() if not fine else 1.0 / sv**2
             if fine:
                 e = np.linalg.norm(p - s_s, axis=1)
                 wp = wp * _kernel_weights(e / sv, cfg.robust_kernel, kernel_k)
@@ -624,7 +679,10 @@ def _finish(
     n = P.shape[0]
     R = T[:3, :3]
     t = T[:3, 3]
-    dist, idx = mc.kdtree.query((P - t) @ R, k=1, distance_upper_bound=gate, workers=1)
+    if cfg.plane_candidates > 1:
+        dist, idx = _best_plane_match(mc, (P - t) @ R, gate, int(cfg.plane_candidates))
+    else:
+        dist, idx = mc.kdtree.query((P - t) @ R, k=1, distance_upper_bound=gate, workers=1)
     inl = np.isfinite(dist)
     j = idx[inl]
     n_s = mc.normals[j] @ R.T
@@ -644,7 +702,10 @@ def _finish(
     n_s = n_s[front]
     s_s = mc.points[j] @ R.T + t
     r = np.einsum("ij,ij->i", n_s, P[inl] - s_s)
-    H = information_matrix(s_s, n_s, sig[inl], D[inl], t, cfg.noise_floor_fraction)
+    H = information_matrix(
+        s_s, n_s, sig[inl], D[inl], t, cfg.noise_floor_fraction,
+        cfg.model_noise_fraction * mc.spacing,
+    )
     cov, degenerate = covariance_from_information(H, mc.radius, cfg.degeneracy_ratio)
     return RegistrationResult(
         T_sensor_target=T,

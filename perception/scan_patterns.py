@@ -26,8 +26,8 @@ Density profiles (seed 000 Fig. 7 text):
 - ``raster``: a sinusoidal fast axis and a constant-rate slow axis (inspection).
 
 The ``phase`` [rad] changes the waveform from frame to frame to increase the effective coverage:
-the Lissajous x phase, the rotation of the rosette and of the spiral, and the offset of the raster
-lines (a fraction ``phase / 2 pi`` of the line spacing).
+the Lissajous x phase, the rotation of the rosette and of the spiral, and the fast-axis phase of
+the raster (its zig-zag lines cross new ground).
 """
 
 from __future__ import annotations
@@ -219,13 +219,9 @@ def _spiral_uv(s: FloatArray, phase: float, k: int) -> tuple[FloatArray, FloatAr
 
 
 def _raster_uv(s: FloatArray, phase: float, k: int) -> tuple[FloatArray, FloatArray]:
-    # k lines: the fast axis does one half sine period per line, the slow axis moves at constant
-    # rate; the phase shifts the lines by a fraction of their spacing.
-    u = -np.cos(np.pi * k * s)
-    spacing = 2.0 / k
-    offset = spacing * ((phase / (2 * np.pi)) % 1.0)
-    v = -1.0 + offset + (2.0 - spacing) * s
-    return u, v
+    # k lines: the fast axis does one half sine period per line while the slow axis moves at a
+    # constant rate (zig-zag lines); the phase shifts the fast axis so the lines cross new ground.
+    return -np.cos(np.pi * k * s + phase), 2.0 * s - 1.0 + 1.0 / len(s)
 
 
 _Waveform = Callable[[FloatArray, float, int], tuple[FloatArray, FloatArray]]
@@ -237,6 +233,9 @@ _WAVEFORMS: dict[str, tuple[_Waveform, Callable[[int], int], int]] = {
     "spiral": (_spiral_uv, lambda n: max(2, round(0.19 * math.sqrt(n))), 1),
     "raster": (_raster_uv, lambda n: max(2, round(0.63 * math.sqrt(n))), 2),
 }
+
+#: Patterns that fill an ellipse rather than their bounding box.
+_ROUND = frozenset({"rosette", "spiral"})
 
 #: Names accepted by :func:`make_pattern`.
 PATTERNS: tuple[str, ...] = tuple(_WAVEFORMS)
@@ -439,6 +438,10 @@ def steer_to_region(
 ) -> ScanPattern:
     """Scale and offset a pattern so that it covers just a region of the target.
 
+    The region's angular box (grown by ``margin``) is the scanned box of Lissajous and raster
+    patterns; rosette and spiral fill the ellipse circumscribing it. The result is clipped to the
+    field of view.
+
     Args:
         pattern_or_name: a :class:`ScanPattern` (its waveform is remapped affinely) or a pattern
             name (a new waveform is generated for the region, so its mirror acceleration shrinks
@@ -467,10 +470,13 @@ def steer_to_region(
     if box is None:
         raise ValueError("T_sensor_target puts the region entirely behind the sensor; nothing to scan")
     lo, hi = box
-    c = 0.5 * (lo + hi)
-    h = np.maximum(0.5 * (hi - lo) * (1.0 + margin), min_half_angle_rad)
-    lo = np.where(np.isfinite(lo), c - h, -np.inf)
-    hi = np.where(np.isfinite(hi), c + h, np.inf)
+    name = pattern_or_name.name if isinstance(pattern_or_name, ScanPattern) else pattern_or_name
+    if np.all(np.isfinite(lo)):
+        c = 0.5 * (lo + hi)
+        h = np.maximum(0.5 * (hi - lo) * (1.0 + margin), min_half_angle_rad)
+        if name in _ROUND:
+            h = h * math.sqrt(2.0)  # the pattern's ellipse circumscribes the region's box
+        lo, hi = c - h, c + h
     lo = np.maximum(lo, -half_fov)
     hi = np.minimum(hi, half_fov)
     if np.any(hi <= lo):

@@ -155,9 +155,10 @@ class TruthScene:
     Attributes:
         T_sensor_target: (4, 4) pose at the frame start time ``t``.
         t: frame start time [s].
-        motion: optional ``t -> (4, 4) T_sensor_target`` over the frame (motion during the scan).
+        motion: relative motion over the frame (motion during the scan): a
+            ``perception.sensors.RelativeMotion`` or a callable ``t -> (4, 4) T_sensor_target``.
     """
 
     T_sensor_target: FloatArray
     t: float
-    motion: Callable[[float], FloatArray] | None = None
+    motion: Callable[[float], FloatArray] | object | None = None

@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.geometry import invert, make_T
+from perception.sensors.motion import RelativeMotion
 from perception.state import TruthScene
 from perception.targets import TargetModel
 from tridar_env.dynamics import (
@@ -264,14 +265,8 @@ class World:
     def scene(self) -> TruthScene:
         """The frame handed to the sensor, with first-order relative motion over the frame."""
         st = self.sensor_truth()
-        T0, t0 = st.T_sensor_target, self.t
-        v, w = st.velocity, st.angular_velocity
-
-        def motion(t: float) -> FloatArray:
-            tau = t - t0
-            return make_T(Rotation.from_rotvec(w * tau).as_matrix() @ T0[:3, :3], T0[:3, 3] + v * tau)
-
-        return TruthScene(T0, t0, motion)
+        motion = RelativeMotion(st.T_sensor_target, st.velocity, st.angular_velocity, t_ref=self.t)
+        return TruthScene(st.T_sensor_target, self.t, motion)
 
     def contact(self) -> ContactState:
         """Relative docking geometry (truth)."""

@@ -27,7 +27,7 @@ Per sample (all samples of a frame at once, one Embree call for every sub-ray):
    surfaces and reduced power shorten the range. Invalid below ``min_range_m`` and, from surfaces
    brighter than ``saturation_reflectivity``, below ``saturation_range_m`` (detector saturation).
 6. **Fusion.** Below ``transition_range_m`` triangulation is the primary; TOF fills its holes and
-   replaces its outliers (triangulation and TOF disagreeing by more than 4 sigma, as on edges).
+   replaces its outliers (triangulation and TOF disagreeing by more than 5 sigma, as on edges).
    At and above the transition only TOF is used. Each point records its subsystem.
 7. **Faults** (:mod:`perception.sensors.faults`): occluder, spurious returns, dropouts, blackout.
 
@@ -60,7 +60,7 @@ FloatArray = npt.NDArray[np.float64]
 __all__ = ["TriDARSensor"]
 
 #: TOF outlier gate on triangulation: |r_tri - r_tof| > OUTLIER_SIGMAS * combined sigma.
-OUTLIER_SIGMAS = 4.0
+OUTLIER_SIGMAS = 5.0
 
 
 class TriDARSensor:

@@ -1,0 +1,448 @@
+"""The TriDAR: sensor + modes + estimators + filter -> :class:`~perception.state.StateVector`.
+
+Following the MILD approach (seed 000 section 4.3) the algorithms drive the scanner: each frame the
+mode logic decides what to scan (full field, the bearing box, or a region of interest around the
+predicted pose) and which algorithm runs on the returns (centroid bearing, PAH acquisition or an
+external seed, ICP tracking). Processing time is part of the simulation: a frame's output becomes
+available ``latency`` seconds after its scan ends, and no new scan starts while the processor is
+busy, so the frame rate follows from scan time plus processing. The configured latencies are used
+(not the measured wall time), which keeps runs bitwise reproducible.
+
+Output timing: :meth:`TriDAR.step` returns the newest output available at the call time, with the
+filter state propagated from its measurement time to the call time (what a navigation filter
+publishes); ``StateVector.latency`` is the age of the underlying measurement. A pose older than
+``loss_of_track_frames`` frame periods plus the tracking latency is no longer published as valid.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from perception.config import MissionConfig
+from perception.filter import PoseFilter, RangeFilter
+from perception.geometry import make_T, matrix_to_quat
+from perception.modes import ModeLogic
+from perception.pointcloud import PointCloud
+from perception.registration import RegistrationResult, icp, prepare_model
+from perception.scan_patterns import make_pattern, steer_to_region
+from perception.sensors.tridar import TriDARSensor
+from perception.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
+from perception.targets import RegionOfInterest, TargetModel
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["TriDAR", "PipelineStats", "nominal_attitude", "deskew"]
+
+#: Points a frame needs for a bearing fix and for a registration.
+MIN_BEARING_POINTS = 5
+MIN_REGISTRATION_POINTS = 12
+R_PORT_DOCK = np.diag([1.0, -1.0, -1.0])
+
+
+def nominal_attitude(cfg: MissionConfig, target: TargetModel) -> FloatArray:
+    """``R_sensor_target`` on the nominal approach: the docking frame facing the port.
+
+    The chaser docking frame has +z along the docking axis; facing the port means
+    ``R_port_dock = diag(1, -1, -1)``; the sensor mount comes from the chaser config.
+    """
+    ch = cfg.dynamics.chaser
+    R_chaser_sensor = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
+    R_target_dock = target.T_target_port[:3, :3] @ R_PORT_DOCK  # chaser dock frame == body axes
+    return R_chaser_sensor.T @ R_target_dock.T
+
+
+def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:
+    """Move every point to where it would be at ``t_ref`` under a constant-rate motion estimate.
+
+    Args:
+        cloud: points with their sample times.
+        motion_T: an object with ``p``, ``v``, ``R``, ``w``, ``t`` (a :class:`PoseFilter` state).
+        t_ref: reference time [s].
+
+    Returns:
+        (N, 3) de-skewed points [m], sensor frame.
+    """
+    if len(cloud) == 0:
+        return cloud.points.copy()
+    f = motion_T
+    tau_i = cloud.times - f.t
+    tau_r = t_ref - f.t
+    p_i = f.p + np.outer(tau_i, f.v)
+    p_r = f.p + f.v * tau_r
+    rel = Rotation.from_rotvec(np.outer(tau_r - tau_i, f.w))
+    return rel.apply(cloud.points - p_i) + p_r
+
+
+@dataclass
+class PipelineStats:
+    """Counters and timings of a run (for benchmarks and reports)."""
+
+    frames: int = 0
+    frames_by_mode: dict[str, int] = field(default_factory=lambda: {"bearing": 0, "search": 0, "tracking": 0})
+    acquisitions: list[tuple[float, float]] = field(default_factory=list)  # (search start, acquired)
+    losses: int = 0
+    restarts: int = 0
+    rejected_candidates: int = 0
+    registration_time_s: list[float] = field(default_factory=list)
+
+
+@dataclass
+class _Output:
+    """A frame's result, published once the processor is done with it."""
+
+    available_t: float
+    mode: Mode
+    kind: str  # "bearing" | "pose" | "none"
+    t_meas: float
+    n_points: int
+    fitness: float = 0.0
+    bearing: FloatArray | None = None
+    range_m: float = 0.0
+    range_sigma: float = 0.0
+    range_rate: float | None = None
+    filt: PoseFilter | None = None
+    n_updates: int = 0
+
+
+class TriDAR:
+    """The TriDAR box: call :meth:`step` once per frame with the truth scene (or a cloud).
+
+    Args:
+        config: the mission configuration (sensor, pipeline, chaser mount for the corridor).
+        target: the target model (reference model and PAH database).
+        sensor: a sensor to use instead of ``TriDARSensor(config.sensor)``.
+        pah: a PAH database to use instead of building (or reusing) one for ``target``.
+    """
+
+    def __init__(
+        self,
+        config: MissionConfig,
+        target: TargetModel,
+        *,
+        sensor: TriDARSensor | None = None,
+        pah: Any | None = None,
+    ) -> None:
+        self.cfg = config
+        self.pc = config.pipeline
+        self.target = target
+        self.sensor = sensor if sensor is not None else TriDARSensor(config.sensor)
+        self.model = prepare_model(target, self.pc.icp.model_points)
+        self._pah = pah
+        self.logic = ModeLogic(self.pc, self.sensor.transition_range_m)
+        self.R_nominal = nominal_attitude(config, target)
+        self.frame_period = 1.0 / self.pc.frame_rate_hz
+        self.max_pose_age = self.pc.loss_of_track_frames * self.frame_period + self.pc.tracking_latency_s + 1e-9
+        self.rng = np.random.default_rng(0)
+        self.external_seed: tuple[float, FloatArray] | None = None
+        self.reset(self.rng)
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self, rng: np.random.Generator) -> None:
+        """Start-up: bearing mode, empty filters, fresh counters; ``rng`` drives the sensor and PAH."""
+        self.rng = rng
+        self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2)
+        self.range_filter = RangeFilter(self.pc.process_noise_accel**2)
+        self.logic.reset(0.0)
+        self.sensor.frame_counter = 0
+        self.busy_until = -np.inf
+        self.frame_index = 0
+        self.last_cloud: PointCloud | None = None
+        self.last_result: RegistrationResult | None = None
+        self._outputs: list[_Output] = []
+        self._published: _Output | None = None
+        self._bearing: tuple[FloatArray, float] | None = None  # (centroid, t) of the last fix
+        self._search_started: float | None = None
+        self._last_pose_t = -np.inf
+        self._n_updates = 0
+        self.stats = PipelineStats()
+
+    def seed_pose(self, T_sensor_target: npt.ArrayLike, t: float) -> None:
+        """An external initial guess for search (GPS, ground, another sensor), valid at ``t``."""
+        T = np.asarray(T_sensor_target, dtype=np.float64)
+        from perception.geometry import check_rigid
+
+        self.external_seed = (float(t), check_rigid(T, "T_sensor_target").copy())
+
+    @property
+    def mode(self) -> Mode:
+        return self.logic.mode
+
+    @property
+    def pah(self) -> Any:
+        """The PAH database of the target (built once per target and configuration)."""
+        if self._pah is None:
+            from perception.pah import PAHDatabase
+
+            key = ("pah_db", self.pc.pah.model_dump_json())
+            self._pah = self.target.cached(key, lambda: PAHDatabase.build(self.target, self.pc.pah))
+        return self._pah
+
+    # ------------------------------------------------------------------ the frame
+    def step(self, scene: TruthScene | PointCloud, t: float) -> StateVector:
+        """Run one frame at time ``t`` [s] and publish the newest available state.
+
+        Args:
+            scene: the truth scene to scan (simulation), or an already acquired cloud.
+            t: current time [s].
+        """
+        if not np.isfinite(t):
+            raise ValueError(f"t={t!r}; expected a finite time [s]")
+        if self.logic.restart_due(t) and self.logic.mode != Mode.BEARING:
+            self._restart(t)
+        if t >= self.busy_until - 1e-12:
+            self._process_frame(scene, t)
+        return self._publish(t)
+
+    def _restart(self, t: float) -> None:
+        self.stats.restarts += 1
+        rng_m = float(np.linalg.norm(self.filter.p)) if self.filter.initialized else None
+        self.logic.restart(t, rng_m)
+        self.filter.reset()
+        self._n_updates = 0
+        self._search_started = t if self.logic.mode == Mode.SEARCH else None
+
+    def _scan(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud:
+        if isinstance(scene, PointCloud):
+            return scene
+        cloud = self.sensor.scan(
+            self.target, scene.T_sensor_target, pattern, self.rng, motion=scene.motion, t0=t,
+            frame_index=self.frame_index,
+        )
+        return cloud
+
+    def _process_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        mode = self.logic.mode
+        self.stats.frames += 1
+        self.stats.frames_by_mode[mode.name.lower()] += 1
+        if mode == Mode.BEARING:
+            self._bearing_frame(scene, t)
+        elif mode == Mode.SEARCH:
+            self._search_frame(scene, t)
+        else:
+            self._tracking_frame(scene, t)
+        self.frame_index += 1
+
+    # ------------------------------------------------------------------ bearing
+    def _full_field(self, n_points: int | None = None) -> Any:
+        sc = self.cfg.sensor.scan
+        phase = (self.frame_index * sc.phase_step) % (2 * np.pi)
+        return make_pattern(
+            sc.pattern, n_points or sc.n_points, self.sensor.fov_rad, phase=phase,
+            sample_rate_hz=sc.sample_rate_hz, max_accel_rad_s2=sc.max_mirror_accel_rad_s2,
+        )
+
+    def _bearing_fix(self, cloud: PointCloud, t: float) -> _Output:
+        """Centroid bearing and filtered range from a cloud (any mode)."""
+        if len(cloud) < MIN_BEARING_POINTS:
+            return _Output(t, self.logic.mode, "none", t, len(cloud))
+        c = cloud.points.mean(axis=0)
+        r = np.linalg.norm(cloud.points, axis=1)
+        t_mid = float(np.mean(cloud.times))
+        rng_m = float(np.median(r))
+        # Spread of returns over the target dominates the centroid's range error far out.
+        sigma = float(max(np.std(r) / np.sqrt(len(r)), np.median(cloud.sigma)))
+        self.range_filter.update(t_mid, rng_m, sigma)
+        self._bearing = (c, t_mid)
+        bearing = np.array([np.arctan2(c[0], c[2]), np.arctan2(-c[1], np.hypot(c[0], c[2]))])
+        return _Output(
+            t, self.logic.mode, "bearing", t_mid, len(cloud), bearing=bearing,
+            range_m=self.range_filter.range, range_sigma=sigma,
+            range_rate=self.range_filter.range_rate if self.range_filter.rate_valid else None,
+        )
+
+    def _bearing_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        cloud = self._scan(scene, t, self._full_field())
+        self.last_cloud = cloud
+        out = self._bearing_fix(cloud, t)
+        self.busy_until = cloud.t_end + self.pc.bearing_latency_s
+        out.available_t = self.busy_until
+        self._outputs.append(out)
+        self.logic.after_bearing(
+            t, out.range_m if out.kind == "bearing" else None, len(cloud), MIN_REGISTRATION_POINTS
+        )
+        if self.logic.mode == Mode.SEARCH:
+            self._search_started = t
+
+    # ------------------------------------------------------------------ search
+    def _search_pattern(self) -> Any:
+        """Steer onto the last bearing fix (a cube of the target's radius around the centroid)."""
+        sc = self.cfg.sensor.scan
+        if self._bearing is None:
+            return self._full_field()
+        c, _ = self._bearing
+        rad = self.target.radius
+        box = RegionOfInterest("bearing", (0.0, 0.0, 0.0), (rad, rad, rad))
+        try:
+            return steer_to_region(
+                sc.pattern, make_T(None, c), box, self.sensor.fov_rad, margin=0.2,
+                n_points=sc.n_points, phase=(self.frame_index * sc.phase_step) % (2 * np.pi),
+                sample_rate_hz=sc.sample_rate_hz, max_accel_rad_s2=sc.max_mirror_accel_rad_s2,
+            )
+        except ValueError:
+            return self._full_field()
+
+    def _constraint(self) -> Any:
+        if not self.pc.use_corridor:
+            return None
+        from perception.pah import PoseConstraint
+
+        return PoseConstraint.from_corridor(self.pc.corridor, self.R_nominal)
+
+    def _search_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        if self._search_started is None:
+            self._search_started = t
+        cloud = self._scan(scene, t, self._search_pattern())
+        self.last_cloud = cloud
+        out = self._bearing_fix(cloud, t)
+        self.busy_until = cloud.t_end + self.pc.search_latency_s
+        out.available_t = self.busy_until
+        if self.logic.search_too_far(t, out.range_m if out.kind == "bearing" else None):
+            self._outputs.append(out)
+            return
+        if len(cloud) < MIN_REGISTRATION_POINTS:
+            self._outputs.append(out)
+            return
+        t_ref = float(np.mean(cloud.times))
+        constraint = self._constraint()
+        sigma = cloud.sigma
+        icp_cfg = self.logic.icp_config_for_range(out.range_m)
+        if self.external_seed is not None:
+            res = icp(cloud.points, self.model, self.external_seed[1], sigma=sigma,
+                      directions=cloud.directions, config=icp_cfg)
+            self.external_seed = None
+        else:
+            res = self.pah.localize(cloud.points, self.rng, constraint=constraint, sigma=sigma)
+        self.last_result = res
+        self.stats.registration_time_s.append(res.time_s)
+        expected = float(np.median(sigma))
+        verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected, res.T_sensor_target, None)
+        admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
+        if verdict.good and admitted:
+            self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res))
+            self._n_updates = 1
+            self._last_pose_t = t_ref
+            self.stats.acquisitions.append((self._search_started, t))
+            self._search_started = None
+            self.logic.go(t, Mode.TRACKING, f"acquired (fitness {res.fitness:.2f})")
+            out = _Output(self.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
+                          bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
+                          filt=copy.deepcopy(self.filter), n_updates=self._n_updates)
+        elif not admitted:
+            self.stats.rejected_candidates += 1
+        self._outputs.append(out)
+
+    def _measurement_cov(self, res: RegistrationResult) -> FloatArray:
+        """Registration covariance plus the configured floors (what the bound leaves out)."""
+        floor = np.r_[np.full(3, self.pc.measurement_floor_m**2),
+                      np.full(3, np.deg2rad(self.pc.measurement_floor_deg) ** 2)]
+        return res.covariance + np.diag(floor)
+
+    # ------------------------------------------------------------------ tracking
+    def _tracking_pattern(self, T_pred: FloatArray) -> tuple[Any, str]:
+        rng_m = float(np.linalg.norm(T_pred[:3, 3]))
+        region = self.logic.region_for_range(rng_m)
+        roi = self.target.regions.get(region) or self.target.regions["whole"]
+        try:
+            pattern = self.sensor.make_scan_pattern(self.frame_index, T_pred, roi)
+        except ValueError:
+            pattern = self._full_field()
+        return pattern, region
+
+    def _tracking_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        f = self.filter
+        T_start = f.pose_at(t)
+        pattern, _ = self._tracking_pattern(T_start)
+        cloud = self._scan(scene, t, pattern)
+        self.last_cloud = cloud
+        self.busy_until = cloud.t_end + self.pc.tracking_latency_s
+        n = len(cloud)
+        if n < MIN_REGISTRATION_POINTS:
+            verdict_good = False
+            reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
+            from perception.modes import FrameVerdict
+
+            lost = self.logic.record(t, FrameVerdict(False, reason))
+            self._after_loss(lost, t)
+            self._outputs.append(_Output(self.busy_until, self.logic.mode, "none", t, n))
+            return
+        t_ref = float(0.5 * (cloud.t_start + cloud.t_end))
+        pts = deskew(cloud, f, t_ref)
+        T_pred = f.pose_at(t_ref)
+        rng_m = float(np.linalg.norm(T_pred[:3, 3]))
+        res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
+                  config=self.logic.icp_config_for_range(rng_m))
+        self.last_result = res
+        self.stats.registration_time_s.append(res.time_s)
+        expected = float(np.median(cloud.sigma))
+        verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected, res.T_sensor_target, T_pred)
+        if verdict.good:
+            upd = f.update(t_ref, res.T_sensor_target, self._measurement_cov(res))
+            if not upd.accepted:
+                verdict = self.logic.judge(True, res.fitness, res.inlier_rmse, expected,
+                                           res.T_sensor_target, None, filter_accepted=False)
+            else:
+                self._n_updates += 1
+                self._last_pose_t = t_ref
+        lost = self.logic.record(t, verdict)
+        self._after_loss(lost, t)
+        out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
+                      t_ref, n, fitness=res.fitness, filt=copy.deepcopy(f), n_updates=self._n_updates)
+        bfix = self._bearing_fix(cloud, t)
+        out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
+        self._outputs.append(out)
+
+    def _after_loss(self, lost: bool, t: float) -> None:
+        if lost:
+            self.stats.losses += 1
+            self.filter.reset()
+            self._n_updates = 0
+            self._search_started = t
+
+    # ------------------------------------------------------------------ publishing
+    def _publish(self, t: float) -> StateVector:
+        ready = [o for o in self._outputs if o.available_t <= t + 1e-9]
+        if ready:
+            self._published = ready[-1]
+            self._outputs = [o for o in self._outputs if o.available_t > t + 1e-9]
+        out = self._published
+        mode = self.logic.mode
+        if out is None:
+            return StateVector.invalid(t, mode)
+        bearing_ok = out.bearing is not None and (t - out.t_meas) <= self.max_pose_age
+        valid_kw: dict[str, bool] = {}
+        kw: dict[str, Any] = {}
+        if bearing_ok:
+            valid_kw.update(bearing=True, range=True, range_rate=out.range_rate is not None)
+            kw.update(bearing=out.bearing, range=out.range_m,
+                      range_rate=out.range_rate if out.range_rate is not None else 0.0)
+        cov = np.eye(12) * INVALID_VARIANCE
+        pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
+        if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
+            f = copy.copy(out.filt)
+            f.p, f.v, f.R, f.w, f.P = f.p.copy(), f.v.copy(), f.R.copy(), f.w.copy(), f.P.copy()
+            if t > f.t:
+                f.predict(t)
+            rates_ok = out.n_updates >= 3
+            valid_kw.update(position=True, attitude=True, velocity=rates_ok, angular_velocity=rates_ok)
+            rng_m = float(np.linalg.norm(f.p))
+            kw.update(position=f.p, quaternion=matrix_to_quat(f.R), range=rng_m,
+                      bearing=np.array([np.arctan2(f.p[0], f.p[2]), np.arctan2(-f.p[1], np.hypot(f.p[0], f.p[2]))]))
+            valid_kw.update(bearing=True, range=True)
+            blocks = [slice(0, 3), slice(6, 9)]
+            if rates_ok:
+                kw.update(velocity=f.v, angular_velocity=f.w, range_rate=float(f.p @ f.v / max(rng_m, 1e-9)))
+                valid_kw["range_rate"] = True
+                blocks += [slice(3, 6), slice(9, 12)]
+            for a in blocks:
+                for b in blocks:
+                    cov[a, b] = f.P[a, b]
+        return StateVector(
+            t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
+            n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,
+        )

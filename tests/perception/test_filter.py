@@ -1,0 +1,89 @@
+"""Pose and range filters: convergence on known motion, consistency, gating."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from perception.filter import PoseFilter, RangeFilter
+from perception.geometry import make_T, pose_error
+
+
+def _truth(t: float, p0, v, R0, w) -> np.ndarray:
+    return make_T(Rotation.from_rotvec(np.asarray(w) * t).as_matrix() @ R0, np.asarray(p0) + np.asarray(v) * t)
+
+
+def test_pose_filter_converges_on_constant_velocity_truth() -> None:
+    rng = np.random.default_rng(0)
+    p0, v = np.array([0.5, -0.3, 20.0]), np.array([0.01, -0.02, -0.10])
+    R0 = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    w = np.radians([0.5, -1.0, 3.0])
+    sp, sa = 0.01, np.radians(0.2)
+    cov = np.diag([sp**2] * 3 + [sa**2] * 3)
+    f = PoseFilter(accel_psd=1e-6, angacc_psd=1e-8)
+    dt = 0.2
+    errs_v, errs_w = [], []
+    for k in range(300):
+        t = k * dt
+        T = _truth(t, p0, v, R0, w)
+        Tm = make_T(Rotation.from_rotvec(rng.normal(0, sa, 3)).as_matrix() @ T[:3, :3],
+                    T[:3, 3] + rng.normal(0, sp, 3))
+        if not f.initialized:
+            f.initialize(t, Tm, cov)
+            continue
+        res = f.update(t, Tm, cov)
+        assert res.accepted
+        errs_v.append(np.linalg.norm(f.v - v))
+        errs_w.append(np.linalg.norm(f.w - w))
+    assert errs_v[-1] < 2e-3 and np.degrees(errs_w[-1]) < 0.05
+    # Filtering beats a single measurement: position error well under the 1-sigma noise.
+    dp, da = pose_error(f.T_sensor_target, _truth(299 * dt, p0, v, R0, w))
+    assert dp < sp and da < np.degrees(sa)
+    # Consistency: the velocity error is within 3 sigma of the filter's own covariance.
+    sv = np.sqrt(np.diag(f.P)[3:6])
+    assert np.all(np.abs(f.v - v) < 4 * sv)
+
+
+def test_prediction_follows_the_motion_model() -> None:
+    f = PoseFilter()
+    R0 = np.eye(3)
+    f.initialize(0.0, make_T(R0, [0, 0, 10]), np.eye(6) * 1e-6, velocity=[0, 0, -0.1], omega=[0, 0, 0.1])
+    T = f.pose_at(2.0)
+    np.testing.assert_allclose(T[:3, 3], [0, 0, 9.8], atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_matrix(T[:3, :3]).as_rotvec(), [0, 0, 0.2], atol=1e-12)
+    m = f.motion()
+    np.testing.assert_allclose(m(2.0), T, atol=1e-12)
+    with pytest.raises(ValueError, match="before the filter time"):
+        f.predict(-1.0)
+
+
+def test_innovation_gate_rejects_a_jump() -> None:
+    f = PoseFilter(accel_psd=1e-6, angacc_psd=1e-8)
+    cov = np.eye(6) * 1e-4
+    f.initialize(0.0, make_T(None, [0, 0, 10]), cov, velocity=np.zeros(3))
+    f.P[3:6, 3:6] = np.eye(3) * 1e-6
+    ok = f.update(0.2, make_T(None, [0.005, 0, 10]), cov)
+    assert ok.accepted
+    bad = f.update(0.4, make_T(None, [1.0, 0, 10]), cov)
+    assert not bad.accepted and bad.mahalanobis2 > 22
+    assert abs(f.p[0]) < 0.05  # the jump did not pull the state
+
+
+def test_range_filter_estimates_closing_rate() -> None:
+    rng = np.random.default_rng(1)
+    f = RangeFilter(accel_psd=1e-8)
+    assert not f.rate_valid
+    for k in range(200):
+        t = 0.2 * k
+        f.update(t, 300.0 - 0.25 * t + rng.normal(0, 0.05), 0.05)
+    assert f.rate_valid
+    assert f.range_rate == pytest.approx(-0.25, abs=0.005)
+    assert f.range == pytest.approx(300.0 - 0.25 * 0.2 * 199, abs=0.05)
+
+
+def test_bad_filter_parameters_named() -> None:
+    with pytest.raises(ValueError, match="accel_psd"):
+        PoseFilter(accel_psd=-1.0)
+    with pytest.raises(ValueError, match="accel_psd"):
+        RangeFilter(accel_psd=float("nan"))

@@ -17,7 +17,7 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-__all__ = ["Subsystem", "PointCloud"]
+__all__ = ["PointCloud", "Subsystem"]
 
 
 class Subsystem(IntEnum):

@@ -46,15 +46,15 @@ FloatArray = npt.NDArray[np.float64]
 __all__ = [
     "PATTERNS",
     "ScanPattern",
-    "as_fov",
     "angles_to_directions",
+    "as_fov",
     "directions_to_angles",
     "lissajous",
+    "make_pattern",
+    "raster",
+    "region_angular_box",
     "rosette",
     "spiral",
-    "raster",
-    "make_pattern",
-    "region_angular_box",
     "steer_to_region",
 ]
 

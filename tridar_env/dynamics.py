@@ -880,6 +880,10 @@ class TargetAttitudeModel:
         self._q0_lvlh_target = np.array([1.0, 0.0, 0.0, 0.0])
         self._q_i_target = self._q0_lvlh_target.copy()  # tumble only
         self._omega_body = np.zeros(3)
+        # Tumbling: states at the next steps of equal length, from one integration per chunk
+        # (one solve_ivp call per step dominated the environment's step time).
+        self._chunk: tuple[float, FloatArray, FloatArray] | None = None
+        self._chunk_i = 0
 
     def reset(self, q_lvlh_target: npt.ArrayLike, omega_body: npt.ArrayLike | None = None) -> None:
         """Set the attitude at the new epoch ``t = 0``.
@@ -909,15 +913,29 @@ class TargetAttitudeModel:
         self._q0_lvlh_target = q
         self._q_i_target = q.copy()
         self._omega_body = w
+        self._chunk = None
+
+    #: Steps integrated at once in tumble mode.
+    CHUNK_STEPS = 256
 
     def step(self, dt: float) -> None:
-        """Advance by ``dt`` [s] (>= 0)."""
+        """Advance by ``dt`` [s] (>= 0).
+
+        In tumble mode, runs of equal steps are integrated in chunks of :attr:`CHUNK_STEPS` by one
+        dense DOP853 solve (same tolerances as :class:`RigidBodyAttitude`), then read back.
+        """
         dt = _non_negative("dt", dt)
         self.t += dt
-        if self._body is not None:
-            self._q_i_target, self._omega_body = self._body.step(
-                self._q_i_target, self._omega_body, dt
-            )
+        if self._body is None or dt == 0.0:
+            return
+        if self._chunk is None or self._chunk[0] != dt or self._chunk_i >= self.CHUNK_STEPS:
+            times = dt * np.arange(1, self.CHUNK_STEPS + 1)
+            q, w = self._body.propagate(self._q_i_target, self._omega_body, times)
+            self._chunk = (dt, q, w)
+            self._chunk_i = 0
+        _, q, w = self._chunk
+        self._q_i_target, self._omega_body = q[self._chunk_i].copy(), w[self._chunk_i].copy()
+        self._chunk_i += 1
 
     @property
     def rotation_lvlh_target(self) -> Rotation:

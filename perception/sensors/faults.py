@@ -19,7 +19,7 @@ from perception.config import FaultsConfig
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-__all__ = ["FaultInjector", "OCCLUDER_REFLECTIVITY"]
+__all__ = ["OCCLUDER_REFLECTIVITY", "FaultInjector"]
 
 #: Diffuse reflectivity of the occluder's surface.
 OCCLUDER_REFLECTIVITY = 0.5

@@ -24,7 +24,7 @@ from perception.config import FlashLidarConfig
 from perception.geometry import check_rigid
 from perception.pointcloud import PointCloud, Subsystem
 from perception.scan_patterns import angles_to_directions
-from perception.sensors.raycast import cast_rays
+from perception.sensors.raycast import cast_from_sensor
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -57,6 +57,7 @@ class FlashLidar:
         AZ, DOWN = np.meshgrid(az, down)  # (rows, cols)
         self._dirs = np.ascontiguousarray(angles_to_directions(AZ, -DOWN).reshape(-1, 3))
         self._dirs.setflags(write=False)
+        self._dirs32 = self._dirs.astype(np.float32)
         self._cos_grazing = math.cos(math.radians(c.grazing_limit_deg))
 
     @property
@@ -101,12 +102,9 @@ class FlashLidar:
             raise ValueError(f"rng={rng!r}; expected a numpy.random.Generator")
         c = self.config
         rows, cols = c.rows, c.cols
-        R, p = T[:3, :3], T[:3, 3]
-        face, r, cos_inc = cast_rays(target, -(R.T @ p), self._dirs @ R)
-        hit = np.flatnonzero(np.isfinite(r))
-        r_h, cos_h = r[hit], cos_inc[hit]
+        hit, face, r_h, cos_h = cast_from_sensor(target, T, self._dirs, self._dirs32)
         ok = (cos_h >= self._cos_grazing) & (r_h >= c.min_range_m) & (r_h <= c.max_range_m)
-        idx, r_h, cos_h = hit[ok], r_h[ok], cos_h[ok]
+        idx, face, r_h, cos_h = hit[ok], face[ok], r_h[ok], cos_h[ok]
         if c.error_model == "uniform":
             err = rng.uniform(-c.range_error_m, c.range_error_m, size=idx.size)
         else:
@@ -115,13 +113,14 @@ class FlashLidar:
         positive = r_meas > 0
         if not positive.all():
             idx, r_h, cos_h, r_meas = idx[positive], r_h[positive], cos_h[positive], r_meas[positive]
+            face = face[positive]
         dirs = self._dirs[idx]
         points = dirs * r_meas[:, None]
         organized = np.full((rows * cols, 3), np.nan)
         organized[idx] = points
         valid = np.zeros(rows * cols, dtype=bool)
         valid[idx] = True
-        face_refl = target.reflectivity[face[idx]]
+        face_refl = target.reflectivity[face]
         n = idx.size
         return PointCloud(
             points=points,

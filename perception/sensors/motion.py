@@ -27,7 +27,7 @@ from perception.geometry import check_rigid
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["RelativeMotion", "Motion", "sample_poses"]
+__all__ = ["Motion", "RelativeMotion", "sample_poses"]
 
 
 @dataclass(frozen=True)

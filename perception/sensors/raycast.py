@@ -16,7 +16,7 @@ from perception.targets import TargetModel
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-__all__ = ["face_planes", "cast_rays", "sphere_hits"]
+__all__ = ["cast_from_sensor", "cast_rays", "face_planes", "sphere_hits"]
 
 
 def face_planes(target: TargetModel) -> tuple[FloatArray, FloatArray]:
@@ -78,6 +78,50 @@ def cast_rays(
     rng[idx] = t
     cos_inc[idx] = -denom
     return face, rng, cos_inc
+
+
+def cast_from_sensor(
+    target: TargetModel,
+    T_sensor_target: FloatArray,
+    directions_sensor: FloatArray,
+    directions_sensor32: npt.NDArray[np.float32] | None = None,
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """First hits of rays from the sensor origin with the target at one pose (compact output).
+
+    Embree gets the rays rotated into the target frame in float32 (it works in float32 anyway);
+    ranges and incidence are then computed in float64 from the hit faces' planes expressed in the
+    sensor frame, so only the hits cost float64 work.
+
+    Args:
+        target: the target model.
+        T_sensor_target: (4, 4) rigid pose.
+        directions_sensor: (M, 3) unit ray directions, sensor frame.
+        directions_sensor32: the same as float32 (pass a cached copy to skip the conversion).
+
+    Returns:
+        ``index`` (K,) rays that hit, ``face`` (K,) faces hit, ``rng`` (K,) ranges [m] and
+        ``cos_incidence`` (K,) (<= 0 for back faces).
+    """
+    R = T_sensor_target[:3, :3]
+    p = T_sensor_target[:3, 3]
+    d32 = (
+        directions_sensor.astype(np.float32) if directions_sensor32 is None else directions_sensor32
+    )
+    d_t = d32 @ R.astype(np.float32)
+    o_t = np.broadcast_to((-(R.T @ p)).astype(np.float32), d_t.shape)
+    first = np.asarray(target.ray.intersects_first(o_t, d_t), dtype=np.int64)
+    idx = np.flatnonzero(first >= 0)
+    f = first[idx]
+    normals, offsets = face_planes(target)
+    n_s = normals @ R.T  # (F, 3) face normals in the sensor frame
+    off_s = offsets + n_s @ p
+    denom = np.einsum("ij,ij->i", n_s[f], directions_sensor[idx])
+    ok = np.abs(denom) > 1e-12
+    t = np.divide(off_s[f], denom, out=np.full(idx.size, np.nan), where=ok)
+    ok &= t > 0
+    if not ok.all():
+        idx, f, t, denom = idx[ok], f[ok], t[ok], denom[ok]
+    return idx, f, t, -denom
 
 
 def sphere_hits(directions: FloatArray, center: npt.ArrayLike, radius: float) -> FloatArray:

@@ -52,7 +52,7 @@ from perception.scan_patterns import (
 )
 from perception.sensors.faults import OCCLUDER_REFLECTIVITY, FaultInjector
 from perception.sensors.motion import Motion, sample_poses
-from perception.sensors.raycast import cast_rays, sphere_hits
+from perception.sensors.raycast import cast_from_sensor, cast_rays, sphere_hits
 from perception.targets import RegionOfInterest, TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -116,6 +116,11 @@ class TriDARSensor:
         if subsystem == Subsystem.TOF:
             return np.full_like(r, self.config.tof.noise_sigma_m)
         raise ValueError(f"subsystem={subsystem!r}; expected TRIANGULATION or TOF")
+
+    @property
+    def subray_offsets(self) -> FloatArray:
+        """(S, 2) (az, el) offsets [rad] of the footprint sub-rays (centre first, then the rim)."""
+        return self._subray_offsets
 
     def _footprint_offsets(self) -> FloatArray:
         beam = self.config.beam
@@ -241,16 +246,18 @@ class TriDARSensor:
 
         # 2. Rays into the target frame, each with its sample's pose.
         if motion is None:
-            R, p = T[:3, :3], T[:3, 3]
-            origins = -(R.T @ p)
-            dirs_t = flat_s @ R
+            hit_i, f_h, r_h, c_h = cast_from_sensor(target, T, flat_s)
+            face = np.full(n * s, -1, dtype=np.int64)
+            r_k = np.full(n * s, np.nan)
+            cos_k = np.full(n * s, np.nan)
+            face[hit_i], r_k[hit_i], cos_k[hit_i] = f_h, r_h, c_h
         else:
             Ts = sample_poses(motion, times, float(t0), self.motion_knots)
             R, p = Ts[:, :3, :3], Ts[:, :3, 3]
             o_n = -np.einsum("nji,nj->ni", R, p)
             origins = np.repeat(o_n, s, axis=0)
             dirs_t = np.einsum("nji,nsj->nsi", R, dirs_s).reshape(-1, 3)
-        face, r_k, cos_k = cast_rays(target, origins, dirs_t)
+            face, r_k, cos_k = cast_rays(target, origins, dirs_t)
 
         # Material response of each sub-ray.
         mat = cfg.material
@@ -290,7 +297,6 @@ class TriDARSensor:
         safe_w = np.where(w_sum > 0, w_sum, 1.0)
         r_mean = (w * r_k).sum(axis=1) / safe_w
         r_min = np.where(returns, r_k, np.inf).min(axis=1)
-        r_max = np.where(returns, r_k, -np.inf).max(axis=1)
         tol = cfg.beam.mixed_range_tolerance_m
         first = returns & (r_k <= r_min[:, None] + tol)
         w_first = np.where(first, w, 0.0)

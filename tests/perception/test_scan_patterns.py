@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from perception.config import SensorConfig
 from perception.geometry import make_T
@@ -23,7 +24,6 @@ from perception.scan_patterns import (
     steer_to_region,
 )
 from perception.targets import RegionOfInterest
-from scipy.spatial.transform import Rotation
 
 FOV = np.radians(30.0)
 

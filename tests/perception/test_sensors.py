@@ -253,7 +253,7 @@ def test_motion_distortion_of_a_spinning_target() -> None:
     late = angle > 0.5 * omega * pattern.duration
     assert np.median(d[late]) > 0.01
     # A callable motion gives the same cloud (slerp is exact for a constant rate).
-    fn = lambda t: motion.poses([t], t_ref=t0)[0]  # noqa: E731
+    fn = lambda t: motion.poses([t], t_ref=t0)[0]
     via_fn = sensor.scan(target, T0, pattern, np.random.default_rng(0), motion=fn, t0=t0)
     np.testing.assert_allclose(via_fn.points, moving.points, atol=1e-9)
 
@@ -392,3 +392,18 @@ def test_pointcloud_container() -> None:
         PointCloud(pts, np.zeros(n), np.full(n, 7), np.ones(n), np.ones(n), pts)
     with pytest.raises(ValueError, match="select mask"):
         c.select(np.array([True, False]))
+
+
+def test_scan_command_writes_ply_and_png(tmp_path, capsys) -> None:
+    from tridar_env.cli import main
+
+    out = tmp_path / "scan.ply"
+    assert main(["scan", "--target", "cygnss", "--range", "20", "--pattern", "rosette",
+                 "-o", str(out)]) == 0
+    cloud = trimesh.load(out)
+    n = int(capsys.readouterr().out.split()[0])
+    assert len(cloud.vertices) == n > 50
+    # The port faces the sensor at 20 m: every point lies within the target's size of that range.
+    assert np.all(np.abs(np.linalg.norm(cloud.vertices, axis=1) - 20.0) < 2.0)
+    png = out.with_suffix(".png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

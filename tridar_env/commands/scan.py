@@ -13,8 +13,8 @@ REGIONS = ("whole", "docking_area", "port", "fov")
 @command("scan", "simulate one sensor frame of a target; write a PLY point cloud and a PNG picture")
 def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target", default="cygnss", help="library name or mesh file (default cygnss)")
-    p.add_argument("--range", dest="range_m", type=float, default=20.0, help="range to the target "
-                   "centre of mass along the boresight [m] (default 20)")
+    p.add_argument("--range", dest="range_m", type=float, default=20.0, help="range to the target's "
+                   "docking port, which sits on the boresight facing the sensor [m] (default 20)")
     p.add_argument("--pattern", default=None, help="lissajous, rosette, spiral or raster "
                    "(default: the config's)")
     p.add_argument("--points", type=int, default=None, help="samples per frame (default: config)")
@@ -33,7 +33,7 @@ def add(p: argparse.ArgumentParser) -> None:
     p.set_defaults(handler=run)
 
 
-def _pose(target, range_m: float, rpy_deg) -> "object":
+def _pose(target, range_m: float, rpy_deg) -> object:
     import numpy as np
     from scipy.spatial.transform import Rotation
 
@@ -44,7 +44,7 @@ def _pose(target, range_m: float, rpy_deg) -> "object":
     # Turn the port's approach axis toward the sensor (sensor -z), then apply the extra attitude.
     face, _ = Rotation.align_vectors([[0.0, 0.0, -1.0]], [target.port_axis])
     R = Rotation.from_euler("xyz", rpy_deg, degrees=True) * face
-    return make_T(R, [0.0, 0.0, range_m])
+    return make_T(R, np.array([0.0, 0.0, range_m]) - R.apply(target.port_position))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,12 +108,13 @@ def run(args: argparse.Namespace) -> int:
     ax.imshow(silhouette, origin="lower", extent=ext, cmap="Greys", alpha=0.35, aspect="equal")
     if len(cloud):
         az, el = directions_to_angles(cloud.points)
+        vmin, vmax = float(cloud.ranges.min()), float(cloud.ranges.max())
         for sub, marker in ((Subsystem.TRIANGULATION, "o"), (Subsystem.TOF, "^"),
                             (Subsystem.FLASH, ".")):
             m = cloud.subsystem == sub
             if m.any():
                 sc = ax.scatter(np.degrees(az[m]), np.degrees(el[m]), c=cloud.ranges[m], s=4,
-                                marker=marker, cmap="viridis", label=f"{sub.name.lower()} ({m.sum()})")
+                                marker=marker, cmap="viridis", vmin=vmin, vmax=vmax, label=f"{sub.name.lower()} ({m.sum()})")
         fig.colorbar(sc, ax=ax, label="range [m]")
         ax.legend(loc="upper right", fontsize=8)
     ax.set_xlabel("azimuth [deg] (+x, right)")

@@ -1,0 +1,286 @@
+"""Tumbling-target synchronisation controller (6-DOF: body thrust + body torque).
+
+The controller reads only the observation: the estimated port pose and rates in the chaser docking
+frame (``port_position_dock`` ``p``, its body-frame rate ``p_dot``, ``q_dock_port``,
+``omega_port_dock`` ``w_rel``), the range/bearing block and the chaser's own gyro ``w``; the chaser's
+mass, thrust, torque and hull size come from the mission config. Everything is expressed in the
+docking frame, whose axes are the chaser body axes (the dock sits at ``d`` on the body +z).
+
+Phases (:attr:`SyncController.phase`):
+
+``approach``
+    Far from the target the port axis sweeps metres per second (a 10 deg nutation at 60 m), so the
+    chaser does not follow it: it points its docking axis at the port (rate damped against the
+    line-of-sight rate, roll rate matched to the port's spin) and closes along the line of sight
+    on a glideslope down to ``sync_range_m``.
+``sync``
+    Attitude: match the port. The error ``e = rotvec(R_dock_port R_aligned)`` (``R_aligned =
+    diag(1, -1, -1)``) and ``w_rel`` drive a rate-limited PD, with the port's inertial angular
+    acceleration (finite differences of ``w + w_rel``, low-passed) as feed-forward.
+    Translation: hold the dock on the *rotating* port axis at ``s`` ahead of the port, the point
+    ``h = p + s u`` with ``u = R_dock_port e_z`` (``h = 0`` there). In the rotating docking frame
+    ``p'' = -a - alpha x (p + d) - w x (w x (p + d)) - 2 w x p_dot + (port's own acceleration)``:
+    the centripetal, Coriolis and Euler terms of the chaser's rotation (``w`` from the gyro,
+    ``alpha`` from the torque just commanded) are compensated, the port's acceleration about the
+    target's centre of mass (unknown: ``|w|^2`` times the port's lever arm) is left to the PD.
+``close``
+    Once the attitude error, the relative rate and the hold error have stayed inside the matching
+    thresholds for ``dwell_s``, ``s`` slides to zero along the port axis on a glideslope ending at
+    ``v_final`` (inside the capture envelope); it freezes (hold point) while any of them leaves a
+    looser band, and the dwell restarts.
+``safe``
+    **Loss of pose (bearing mode, search, loss of track): never act on a stale pose.** Torque is
+    zero, so the chaser keeps the inertial rate it had (the synchronised spin is the best
+    open-loop continuation and keeps the target near the boresight); thrust brakes a closing
+    range rate along the line of sight (bearing) when both are valid, else the chaser coasts.
+    On reacquisition the controller re-enters ``approach`` or ``sync`` by range and must dwell
+    again before closing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.config import MissionConfig
+from perception.geometry import quat_to_matrix
+from tridar_env.env import observation_slices
+
+_S = observation_slices()
+FloatArray = npt.NDArray[np.float64]
+
+#: Port attitude in the docking frame when the two are mated: x along x, z against z.
+R_ALIGNED = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class SyncGains:
+    """Tunables of :class:`SyncController` (SI units)."""
+
+    sync_range_m: float = 4.0  # [m] dock-to-port distance at which approach hands over to sync
+    standoff_m: float = 3.0  # [m] hold point on the port axis
+    # approach (line-of-sight glideslope)
+    approach_slope: float = 0.02  # [1/s] v_des = slope * (distance - sync_range)
+    approach_v_max: float = 0.5  # [m/s]
+    approach_v_min: float = 0.05  # [m/s] so that the hand-over range is crossed
+    kv: float = 0.4  # [1/s] speed loops
+    # sync / close translation: h_dot_des = -sat(lam * h, v_hold_max); a = kd (h_dot - h_dot_des)
+    lam: float = 0.12  # [1/s]
+    kd: float = 0.5  # [1/s]
+    v_hold_max: float = 0.25  # [m/s]
+    # closing along the port axis
+    close_slope: float = 0.05  # [1/s] s_dot = -clip(slope * s, v_final, v_close_max)
+    v_final: float = 0.07  # [m/s] closing speed at contact (envelope 0.05-0.10)
+    v_close_max: float = 0.12  # [m/s]
+    close_accel: float = 0.01  # [m/s^2] the hold point speeds up gently
+    s_end: float = -0.3  # [m] the hold point runs past the port so contact happens at v_final
+    # attitude: w_des = sat(att_lam * e, w_max); alpha = att_kd (w_rel + w_des) + feed-forward
+    att_lam: float = 0.5  # [1/s]
+    att_kd: float = 1.2  # [1/s]
+    w_max: float = 0.1  # [rad/s]
+    alpha_filter_s: float = 2.0  # [s] time constant of the port angular-acceleration low-pass
+    # matching thresholds to start closing (and looser ones to keep closing)
+    att_ok_deg: float = 1.5
+    rate_ok_deg_s: float = 0.08
+    hold_ok_m: float = 0.04
+    hold_rate_ok_m_s: float = 0.015
+    dwell_s: float = 5.0
+    loose: float = 2.0  # closing freezes when an error exceeds loose * its threshold
+    brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate
+
+
+class SyncController:
+    """Synchronise with a tumbling target's port, then close along its rotating axis.
+
+    Args:
+        cfg: the mission config (chaser mass, thrust, torque, hull and dock offset; the env step).
+        gains: controller gains.
+
+    Raises:
+        ValueError: when the chaser is not 6-DOF (``dynamics.chaser.attitude='controlled'``) or
+            does not thrust in its body frame.
+    """
+
+    def __init__(self, cfg: MissionConfig, gains: SyncGains | None = None) -> None:
+        ch = cfg.dynamics.chaser
+        if ch.attitude != "controlled":
+            raise ValueError(
+                f"dynamics.chaser.attitude={ch.attitude!r}; SyncController needs 'controlled' (6-DOF)"
+            )
+        if ch.thrust_frame != "body":
+            raise ValueError(f"dynamics.chaser.thrust_frame={ch.thrust_frame!r}; expected 'body'")
+        self.cfg = cfg
+        self.g = gains or SyncGains()
+        self.dt = float(cfg.env.frame_period_s * cfg.env.frame_skip)
+        self.dry = ch.dry_mass_kg
+        self.prop0 = ch.propellant_kg
+        self.max_thrust = ch.max_thrust_n
+        self.max_torque = ch.max_torque_nm
+        # The chaser is modelled as a uniform cube of the hull's size (its own design data).
+        self.inertia = (ch.dry_mass_kg + ch.propellant_kg) * (2.0 * ch.hull_radius_m) ** 2 / 6.0
+        self.d = np.array(ch.dock_position_m, dtype=np.float64)  # dock origin, body frame [m]
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the episode: phase, hold distance, dwell timer and filters."""
+        self.phase = "approach"
+        self.s = self.g.standoff_m
+        self.s_dot = 0.0
+        self.dwell = 0.0
+        self._w_t_prev: FloatArray | None = None
+        self._alpha_t = np.zeros(3)
+
+    # ------------------------------------------------------------------ helpers
+    def _mass(self, obs: npt.NDArray[np.floating]) -> float:
+        return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
+
+    def _los_brake(self, obs: npt.NDArray[np.floating]) -> FloatArray:
+        valid = obs[_S["valid"]]
+        rr = float(obs[_S["range_rate"]][0])
+        if valid[0] > 0.5 and valid[2] > 0.5 and rr < -0.01:
+            az, el = (float(x) for x in obs[_S["bearing"]])
+            los = np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
+            return self.g.brake_gain * rr * los  # accelerate away along the line of sight
+        return np.zeros(3)
+
+    def _port_alpha(self, w: FloatArray, w_rel: FloatArray) -> FloatArray:
+        """Low-passed inertial angular acceleration of the port, body frame [rad/s^2]."""
+        w_t = w + w_rel  # port inertial rate, body coordinates
+        if self._w_t_prev is not None:
+            # d/dt (inertial) = d/dt (body) + w x w_t
+            raw = (w_t - self._w_t_prev) / self.dt + np.cross(w, w_t)
+            k = self.dt / (self.g.alpha_filter_s + self.dt)
+            self._alpha_t = self._alpha_t + k * (raw - self._alpha_t)
+        self._w_t_prev = w_t
+        return self._alpha_t
+
+    # ------------------------------------------------------------------ the law
+    def command(self, obs: npt.NDArray[np.floating]) -> tuple[FloatArray, FloatArray]:
+        """Body acceleration [m/s^2] and body angular acceleration [rad/s^2] commands."""
+        g = self.g
+        valid = obs[_S["valid"]]
+        w = obs[_S["chaser_rate_body"]].astype(np.float64)
+        if not (valid[3] > 0.5 and valid[4] > 0.5 and valid[5] > 0.5 and valid[6] > 0.5):
+            self.phase = "safe"
+            self.dwell = 0.0
+            self._w_t_prev = None
+            return self._los_brake(obs), np.zeros(3)
+
+        p = obs[_S["port_position_dock"]].astype(np.float64)
+        p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
+        R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64))
+        w_rel = obs[_S["omega_port_dock"]].astype(np.float64)
+        alpha_t = self._port_alpha(w, w_rel)
+        dist = float(np.linalg.norm(p))
+
+        if self.phase == "safe":
+            self.phase = "approach" if dist > g.sync_range_m + 0.5 else "sync"
+            self.s = min(max(self.s, 0.0), g.standoff_m) if self.phase == "sync" else g.standoff_m
+            self.s_dot = 0.0
+        if self.phase == "approach" and dist <= g.sync_range_m:
+            self.phase = "sync"
+            self.s = g.standoff_m
+            self.s_dot = 0.0
+
+        if self.phase == "approach":
+            return self._approach(p, p_dot, w, w_rel, dist)
+
+        # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration)
+        e = _rotvec(R_dp @ R_ALIGNED)
+        w_des = _sat(g.att_lam * e, g.w_max)
+        alpha = g.att_kd * (w_rel + w_des) + alpha_t
+        # ---- translation: hold the point s ahead of the port on its axis
+        u = R_dp @ np.array([0.0, 0.0, 1.0])
+        u_dot = np.cross(w_rel, u)
+        h = p + self.s * u
+        h_dot = p_dot + self.s * u_dot
+        # matching is judged across the axis: along it the hold point is allowed to move
+        self._update_phase(e, w_rel, h - (h @ u) * u, h_dot - (h_dot @ u) * u)
+        if self.phase == "close":
+            v_goal = float(np.clip(g.close_slope * self.s, g.v_final, g.v_close_max))
+            self.s_dot = max(self.s_dot - g.close_accel * self.dt, -v_goal)
+        else:
+            self.s_dot = 0.0  # hold point frozen
+        if self.s <= g.s_end:
+            self.s_dot = 0.0
+        self.s += self.s_dot * self.dt
+        h = p + self.s * u
+        h_dot = p_dot + self.s * u_dot + self.s_dot * u
+        # second derivative of the axis in the docking frame: w_rel' ~ -alpha_c - w x w_rel
+        w_rel_dot = -alpha + alpha_t - np.cross(w, w_rel)
+        u_ddot = np.cross(w_rel_dot, u) + np.cross(w_rel, u_dot)
+        r = p + self.d  # port relative to the chaser's centre of mass, body frame
+        rotating = np.cross(alpha, r) + np.cross(w, np.cross(w, r)) + 2.0 * np.cross(w, p_dot)
+        h_dot_des = -_sat(g.lam * h, g.v_hold_max)
+        a = g.kd * (h_dot - h_dot_des) - rotating + self.s * u_ddot
+        return a, alpha
+
+    def _approach(
+        self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray, dist: float
+    ) -> tuple[FloatArray, FloatArray]:
+        g = self.g
+        los = p / max(dist, 1e-6)
+        z = np.array([0.0, 0.0, 1.0])
+        axis = np.cross(z, los)
+        sin_e = float(np.linalg.norm(axis))
+        e = axis / sin_e * np.arctan2(sin_e, float(z @ los)) if sin_e > 1e-12 else np.zeros(3)
+        # Far out, work with the inertial relative velocity of the port seen from the chaser's
+        # centre of mass (body coordinates): no rotating-frame terms to compensate.
+        r = p + self.d
+        v = p_dot + np.cross(w, r)
+        # hold the line-of-sight's inertial rate, and match the port's spin about it
+        w_los = np.cross(r, v) / max(float(r @ r), 1e-6)
+        w_ref = (w_los - w) - ((w_los - w) @ los) * los + (w_rel @ los) * los
+        alpha = g.att_kd * (w_ref + _sat(g.att_lam * e, g.w_max))
+        v_des = float(np.clip(g.approach_slope * (dist - g.sync_range_m), g.approach_v_min, g.approach_v_max))
+        v_los = float(v @ los)  # negative when closing
+        v_perp = v - v_los * los
+        a = g.kv * (v_los + v_des) * los + g.kd * v_perp
+        return a, alpha
+
+    def _update_phase(self, e: FloatArray, w_rel: FloatArray, h: FloatArray, h_dot: FloatArray) -> None:
+        g = self.g
+        errs = (
+            np.degrees(np.linalg.norm(e)) / g.att_ok_deg,
+            np.degrees(np.linalg.norm(w_rel)) / g.rate_ok_deg_s,
+            float(np.linalg.norm(h)) / g.hold_ok_m,
+            float(np.linalg.norm(h_dot)) / g.hold_rate_ok_m_s,
+        )
+        worst = max(errs)
+        if self.phase == "sync":
+            self.dwell = self.dwell + self.dt if worst <= 1.0 else 0.0
+            if self.dwell >= g.dwell_s:
+                self.phase = "close"
+        elif self.phase == "close" and worst > g.loose:
+            self.phase = "sync"  # freeze the hold point where it is and dwell again
+            self.dwell = 0.0
+
+    def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
+        a, alpha = self.command(obs)
+        thrust = a * self._mass(obs) / self.max_thrust
+        w = obs[_S["chaser_rate_body"]].astype(np.float64)
+        # isotropic chaser inertia: w x (I w) vanishes, kept for clarity of the model
+        torque = self.inertia * alpha + np.cross(w, self.inertia * w)
+        out = np.concatenate([thrust, torque / self.max_torque])
+        return np.clip(out, -1.0, 1.0).astype(np.float32)
+
+
+def _sat(v: FloatArray, limit: float) -> FloatArray:
+    n = float(np.linalg.norm(v))
+    return v if n <= limit else v * (limit / n)
+
+
+def _rotvec(R: FloatArray) -> FloatArray:
+    """Rotation vector [rad] of a rotation matrix (log map)."""
+    cos = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    ang = float(np.arccos(cos))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if ang < 1e-9:
+        return 0.5 * v
+    if np.pi - ang < 1e-6:
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_matrix(R).as_rotvec()
+    return v * (ang / (2.0 * np.sin(ang)))

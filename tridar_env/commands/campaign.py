@@ -1,0 +1,63 @@
+"""``tridar-env campaign CONFIG``: a Monte Carlo campaign on Dask (resumable)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tridar_env.cli import command
+
+
+@command("campaign", "Monte Carlo campaign over dispersions on Dask (LocalCluster or --scheduler)")
+def add(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="campaign YAML (or a name in configs/campaigns)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="results folder (default runs/campaigns/<name>); an existing one resumes")
+    p.add_argument("--scheduler", default=None,
+                   help="address of a running Dask scheduler (tcp://host:port); "
+                        "default: an embedded LocalCluster")
+    p.add_argument("--workers", type=int, default=None,
+                   help="LocalCluster worker processes (default: one per core)")
+    p.add_argument("--serial", action="store_true", help="run in this process, no Dask")
+    p.add_argument("--runs", type=int, default=None, help="override the number of runs")
+    p.add_argument("--seed", type=int, default=None, help="override the campaign seed")
+    p.add_argument("--perception", choices=["truth", "truth+noise", "tridar"], default=None,
+                   help="override the perception mode")
+    p.add_argument("--controller", default=None, help="override the controller name")
+    p.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")
+    p.add_argument("--fresh", action="store_true", help="discard results already in --out")
+    p.add_argument("--retry-errors", action="store_true",
+                   help="rerun runs whose stored outcome is 'error'")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents.campaign import load_campaign, run_campaign
+
+    overrides = {
+        k: v for k, v in {
+            "runs": args.runs, "seed": args.seed, "perception": args.perception,
+            "controller": args.controller, "max_steps": args.max_steps,
+        }.items() if v is not None
+    }
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers={args.workers}; expected >= 1")
+    cfg = load_campaign(args.config, **overrides)
+    out = args.out or Path("runs") / "campaigns" / cfg.name
+    res = run_campaign(
+        cfg, out, scheduler=args.scheduler, workers=args.workers, serial=args.serial,
+        fresh=args.fresh, retry_errors=args.retry_errors, progress=not args.no_progress,
+        plots=not args.no_plots,
+    )
+    resumed = cfg.runs - len(res.ran) - res.failed_to_execute
+    print(res.summary_table(
+        f"campaign {cfg.name}: {len(res.ran)} runs now, {resumed} resumed from {out}"
+    ))
+    if not res.complete:
+        print(f"{cfg.runs - len(res.table)} runs missing ({res.failed_to_execute} lost to failed "
+              "workers); run the same command again to complete the campaign")
+        return 1
+    print(f"results: {out / 'results.parquet'}; plots: {', '.join(p.name for p in res.plots) or '-'}")
+    return 0

@@ -76,11 +76,14 @@ class SyncGains:
     v_close_max: float = 0.12  # [m/s]
     close_accel: float = 0.01  # [m/s^2] the hold point speeds up gently
     s_end: float = -0.3  # [m] the hold point runs past the port so contact happens at v_final
-    # attitude: w_des = sat(att_lam * e, w_max); alpha = att_kd (w_rel + w_des) + feed-forward
-    att_lam: float = 0.5  # [1/s]
-    att_kd: float = 1.2  # [1/s]
+    # attitude: w_des = sat(lam * e, w_max); alpha = kd (w_rel + w_des) (+ feed-forward in sync)
+    point_lam: float = 0.5  # [1/s] approach: pointing the docking axis at the port
+    point_kd: float = 1.2  # [1/s]
+    att_lam: float = 0.2  # [1/s] sync/close: lower bandwidth, the pose estimate is noisier
+    att_kd: float = 0.6  # [1/s]  than the line of sight
     w_max: float = 0.1  # [rad/s]
-    alpha_filter_s: float = 2.0  # [s] time constant of the port angular-acceleration low-pass
+    alpha_filter_s: float = 5.0  # [s] low-pass of the port's angular acceleration (feed-forward)
+    metric_filter_s: float = 2.0  # [s] low-pass of the errors judged for closing
     # matching thresholds to start closing (and looser ones to keep closing)
     att_ok_deg: float = 1.5
     rate_ok_deg_s: float = 0.08
@@ -131,6 +134,7 @@ class SyncController:
         self.dwell = 0.0
         self._w_t_prev: FloatArray | None = None
         self._alpha_t = np.zeros(3)
+        self._metrics: FloatArray | None = None  # low-passed (e, w_rel, h_perp, h_dot_perp)
 
     # ------------------------------------------------------------------ helpers
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
@@ -166,6 +170,7 @@ class SyncController:
             self.phase = "safe"
             self.dwell = 0.0
             self._w_t_prev = None
+            self._metrics = None
             return self._los_brake(obs), np.zeros(3)
 
         p = obs[_S["port_position_dock"]].astype(np.float64)
@@ -208,13 +213,10 @@ class SyncController:
         self.s += self.s_dot * self.dt
         h = p + self.s * u
         h_dot = p_dot + self.s * u_dot + self.s_dot * u
-        # second derivative of the axis in the docking frame: w_rel' ~ -alpha_c - w x w_rel
-        w_rel_dot = -alpha + alpha_t - np.cross(w, w_rel)
-        u_ddot = np.cross(w_rel_dot, u) + np.cross(w_rel, u_dot)
         r = p + self.d  # port relative to the chaser's centre of mass, body frame
         rotating = np.cross(alpha, r) + np.cross(w, np.cross(w, r)) + 2.0 * np.cross(w, p_dot)
         h_dot_des = -_sat(g.lam * h, g.v_hold_max)
-        a = g.kd * (h_dot - h_dot_des) - rotating + self.s * u_ddot
+        a = g.kd * (h_dot - h_dot_des) - rotating
         return a, alpha
 
     def _approach(
@@ -233,7 +235,7 @@ class SyncController:
         # hold the line-of-sight's inertial rate, and match the port's spin about it
         w_los = np.cross(r, v) / max(float(r @ r), 1e-6)
         w_ref = (w_los - w) - ((w_los - w) @ los) * los + (w_rel @ los) * los
-        alpha = g.att_kd * (w_ref + _sat(g.att_lam * e, g.w_max))
+        alpha = g.point_kd * (w_ref + _sat(g.point_lam * e, g.w_max))
         v_des = float(np.clip(g.approach_slope * (dist - g.sync_range_m), g.approach_v_min, g.approach_v_max))
         v_los = float(v @ los)  # negative when closing
         v_perp = v - v_los * los
@@ -242,11 +244,17 @@ class SyncController:
 
     def _update_phase(self, e: FloatArray, w_rel: FloatArray, h: FloatArray, h_dot: FloatArray) -> None:
         g = self.g
+        x = np.concatenate([e, w_rel, h, h_dot])
+        if self._metrics is None:
+            self._metrics = x
+        else:
+            self._metrics += self.dt / (g.metric_filter_s + self.dt) * (x - self._metrics)
+        m = self._metrics
         errs = (
-            np.degrees(np.linalg.norm(e)) / g.att_ok_deg,
-            np.degrees(np.linalg.norm(w_rel)) / g.rate_ok_deg_s,
-            float(np.linalg.norm(h)) / g.hold_ok_m,
-            float(np.linalg.norm(h_dot)) / g.hold_rate_ok_m_s,
+            np.degrees(np.linalg.norm(m[0:3])) / g.att_ok_deg,
+            np.degrees(np.linalg.norm(m[3:6])) / g.rate_ok_deg_s,
+            float(np.linalg.norm(m[6:9])) / g.hold_ok_m,
+            float(np.linalg.norm(m[9:12])) / g.hold_rate_ok_m_s,
         )
         worst = max(errs)
         if self.phase == "sync":

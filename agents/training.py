@@ -1,0 +1,627 @@
+"""Learning: train a stable-baselines3 policy from a training YAML, and evaluate saved policies.
+
+Intended workflow (the reason for the three perception modes):
+
+1. Measure the TriDAR pipeline's estimation errors:
+   ``tridar-env campaign configs/campaigns/pipeline_errors.yaml`` (the summary's RMS position and
+   attitude errors; ``plots/error_vs_range.png`` shows how they grow with range).
+2. Put those numbers into the training YAML as ``env__truth_noise_*`` and train on
+   ``perception: truth+noise``, which is orders of magnitude cheaper than the pipeline:
+   ``tridar-env train configs/training/ppo_final_approach.yaml``.
+3. Evaluate the saved policy on the full pipeline, with the same summary table as a campaign:
+   ``tridar-env evaluate runs/train/ppo_final_approach --perception tridar --episodes 100``
+   (or fly it in a distributed campaign with ``controller: sb3:runs/train/ppo_final_approach``).
+
+A training run writes, into its folder: ``model.zip`` (SB3), ``vecnormalize.npz`` (observation and
+return statistics as plain arrays, so that evaluation never unpickles them), ``training.yaml`` (the
+resolved config), ``checkpoints/`` (model + statistics every ``checkpoint_every_steps``) and
+``tb/`` (TensorBoard logs).
+
+Loading a policy (:func:`load_policy`) checks that the file is a zip with SB3's members and hands
+SB3 replacements for every pickled field of the archive, so that no user-supplied bytes are
+unpickled; the network weights are read by ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import inspect
+import json
+import os
+import re
+import shutil
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field
+
+from perception.config import CONFIG_DIR, ConfigError, MissionConfig, load_config, save_config
+
+__all__ = [
+    "NormalizeConfig",
+    "TrainingConfig",
+    "TrainResult",
+    "SB3Policy",
+    "load_training",
+    "validate_training",
+    "train",
+    "load_policy",
+    "evaluate",
+]
+
+MODEL_FILE = "model.zip"
+STATS_FILE = "vecnormalize.npz"
+CONFIG_FILE = "training.yaml"
+#: Members every SB3 model archive has.
+SB3_MEMBERS = ("data", "policy.pth")
+
+
+class NormalizeConfig(BaseModel):
+    """``VecNormalize`` settings (running mean/variance of observations and returns)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    obs: bool = True
+    reward: bool = True
+    clip_obs: Annotated[float, Field(gt=0)] = 10.0
+    clip_reward: Annotated[float, Field(gt=0)] = 10.0
+
+
+class TrainingConfig(BaseModel):
+    """A training run (one YAML file in ``configs/training``).
+
+    Attributes:
+        name: run name (default output folder ``runs/train/<name>``, TensorBoard run name).
+        algo: ``ppo`` or ``sac``.
+        env_id: registered id; ``mission`` optionally replaces its mission file.
+        perception: what the policy sees while training (``truth+noise`` is the intended mode).
+        config: mission-config overrides, ``__``-nested (e.g. ``env__truth_noise_position_m``).
+        total_timesteps: environment steps over all envs.
+        n_envs: parallel envs; ``vec_env`` ``subproc`` (one process each) or ``dummy``.
+        seed: seeds SB3, torch and the envs (env ``k`` gets ``seed + k``).
+        normalize: VecNormalize settings.
+        checkpoint_every_steps: save model + statistics every this many total steps (None: off).
+        net_arch, activation, log_std_init: policy network.
+        hyperparams: keyword arguments of the SB3 algorithm (``learning_rate``, ``n_steps``, ...).
+        device: torch device; ``torch_threads``: intra-op threads of the learner.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "policy"
+    algo: Literal["ppo", "sac"] = "ppo"
+    env_id: str = "TriDAR/FinalApproach-v0"
+    mission: str | None = None
+    perception: Literal["truth", "truth+noise", "tridar"] = "truth+noise"
+    config: dict[str, Any] = Field(default_factory=dict)
+    total_timesteps: Annotated[int, Field(ge=1)] = 1_000_000
+    n_envs: Annotated[int, Field(ge=1, le=256)] = 2
+    vec_env: Literal["subproc", "dummy"] = "subproc"
+    seed: Annotated[int, Field(ge=0)] = 0
+    normalize: NormalizeConfig = NormalizeConfig()
+    checkpoint_every_steps: Annotated[int, Field(ge=1)] | None = 100_000
+    net_arch: list[Annotated[int, Field(ge=1)]] | None = None
+    activation: Literal["tanh", "relu", "elu", "leaky_relu"] | None = None
+    log_std_init: float | None = None
+    hyperparams: dict[str, Any] = Field(default_factory=dict)
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    torch_threads: Annotated[int, Field(ge=1)] = 1
+
+
+# Keyword arguments the trainer sets itself (not allowed in ``hyperparams``).
+_RESERVED = {"policy", "env", "seed", "verbose", "tensorboard_log", "policy_kwargs", "device",
+             "_init_setup_model"}
+
+
+def _algo_class(algo: str) -> Any:
+    from stable_baselines3 import PPO, SAC
+
+    return {"ppo": PPO, "sac": SAC}[algo]
+
+
+def _bare_id(env_id: str) -> str:
+    return env_id.split(":", 1)[1] if ":" in env_id else env_id
+
+
+def _mission_path(env_id: str, mission: str | None) -> Path:
+    from tridar_env.registration import ENV_IDS
+
+    return Path(mission) if mission else CONFIG_DIR / "missions" / f"{ENV_IDS[_bare_id(env_id)]}.yaml"
+
+
+def validate_training(cfg: TrainingConfig, source: str = "training config") -> MissionConfig:
+    """Check the id, the mission overrides and the hyperparameters; return the mission config.
+
+    Raises:
+        ConfigError: naming the field and the value.
+    """
+    from tridar_env.registration import ENV_IDS
+
+    def fail(msg: str) -> None:
+        raise ConfigError(f"{source}: {msg}")
+
+    if _bare_id(cfg.env_id) not in ENV_IDS:
+        fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
+    if cfg.mission is not None and not Path(cfg.mission).is_file():
+        fail(f"mission={cfg.mission!r}: no such file")
+    params = set(inspect.signature(_algo_class(cfg.algo).__init__).parameters) - _RESERVED - {"self"}
+    for key, value in cfg.hyperparams.items():
+        if key not in params:
+            fail(
+                f"hyperparams.{key}={value!r} is not a {cfg.algo.upper()} argument; expected one "
+                f"of {', '.join(sorted(params))}"
+            )
+        if not isinstance(value, (int, float, str, bool, type(None), list)):
+            fail(f"hyperparams.{key}={value!r}; expected a number, string, bool or list")
+    try:
+        mission = load_config(
+            _mission_path(cfg.env_id, cfg.mission), **cfg.config, env__perception=cfg.perception
+        )
+    except ConfigError as exc:
+        detail = "; ".join(line.strip() for line in str(exc).splitlines()[1:]) or str(exc)
+        fail(f"config gives an invalid mission: {detail}")
+    return mission
+
+
+def load_training(path: str | Path, **overrides: Any) -> TrainingConfig:
+    """Read and validate a training YAML (a bare name is looked up in ``configs/training``)."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = CONFIG_DIR / "training" / f"{p}.yaml"
+    cfg = load_config(p, model=TrainingConfig, **overrides)
+    validate_training(cfg, str(p))
+    return cfg
+
+
+# ---------------------------------------------------------------------------------------------
+# VecNormalize statistics as plain arrays
+# ---------------------------------------------------------------------------------------------
+def _save_stats(vec: Any, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
+    np.savez(
+        tmp,
+        obs_mean=vec.obs_rms.mean, obs_var=vec.obs_rms.var, obs_count=vec.obs_rms.count,
+        ret_mean=vec.ret_rms.mean, ret_var=vec.ret_rms.var, ret_count=vec.ret_rms.count,
+        clip_obs=vec.clip_obs, clip_reward=vec.clip_reward, epsilon=vec.epsilon, gamma=vec.gamma,
+        norm_obs=vec.norm_obs, norm_reward=vec.norm_reward,
+    )
+    os.replace(tmp, path)
+
+
+def _load_stats(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            stats = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path} is not a VecNormalize statistics file ({exc})") from None
+    need = {"obs_mean", "obs_var", "clip_obs", "epsilon", "norm_obs"}
+    if not need <= set(stats):
+        raise ValueError(f"{path} lacks {sorted(need - set(stats))}; expected a file written by train")
+    return stats
+
+
+# ---------------------------------------------------------------------------------------------
+# Training
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class TrainResult:
+    """Where a training run went.
+
+    Attributes:
+        out_dir: run folder; ``model_path``, ``stats_path``: the saved policy and statistics.
+        timesteps: steps trained; ``wall_time_s``: time spent; ``interrupted``: Ctrl-C.
+    """
+
+    out_dir: Path
+    model_path: Path
+    stats_path: Path | None
+    timesteps: int
+    wall_time_s: float
+    interrupted: bool = False
+
+
+def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig) -> Any:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    env_id = cfg.env_id if ":" in cfg.env_id else f"tridar_env:{cfg.env_id}"
+    kwargs = {
+        "perception": cfg.perception, "config": cfg.mission,
+        "max_episode_steps": mission.env.max_episode_steps,
+        **{k: v for k, v in cfg.config.items() if k.replace(".", "__") != "env__perception"},
+    }
+    vec_cls = SubprocVecEnv if cfg.vec_env == "subproc" and cfg.n_envs > 1 else DummyVecEnv
+    return make_vec_env(env_id, n_envs=cfg.n_envs, seed=cfg.seed, vec_env_cls=vec_cls,
+                        env_kwargs=kwargs)
+
+
+def _policy_kwargs(cfg: TrainingConfig) -> dict[str, Any]:
+    import torch
+
+    kw: dict[str, Any] = {}
+    if cfg.net_arch is not None:
+        kw["net_arch"] = list(cfg.net_arch)
+    if cfg.activation is not None:
+        kw["activation_fn"] = {
+            "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU, "elu": torch.nn.ELU,
+            "leaky_relu": torch.nn.LeakyReLU,
+        }[cfg.activation]
+    if cfg.log_std_init is not None:
+        kw["log_std_init"] = cfg.log_std_init
+    return kw
+
+
+def _progress_bar_available() -> bool:
+    return all(importlib.util.find_spec(m) is not None for m in ("tqdm", "rich"))
+
+
+def _checkpoint_callback(save_freq: int, path: Path, vec: Any) -> Any:
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class Checkpoint(CheckpointCallback):
+        """SB3's checkpoint plus the normalisation statistics as ``.npz`` (no pickle)."""
+
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0:
+                _save_stats(vec, Path(self.save_path) / f"vecnormalize_{self.num_timesteps}_steps.npz")
+            return super()._on_step()
+
+    return Checkpoint(save_freq=save_freq, save_path=str(path), name_prefix="model")
+
+
+def _save_model(model: Any, path: Path) -> None:
+    # Transient training state is left out: it is pickled by SB3 and useless for inference.
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.zip")
+    model.save(tmp, exclude=["_last_obs", "_last_episode_starts", "_last_original_obs",
+                             "ep_info_buffer", "ep_success_buffer", "env"])
+    os.replace(tmp, path)
+
+
+def train(
+    cfg: TrainingConfig, out_dir: str | Path, *, progress: bool = True, force: bool = False
+) -> TrainResult:
+    """Train ``cfg.algo`` on vectorised, normalised envs and save the policy into ``out_dir``.
+
+    Args:
+        cfg: the training run.
+        out_dir: run folder (see the module docstring for its contents).
+        progress: SB3's progress bar (when tqdm and rich are installed).
+        force: replace a policy already in ``out_dir``.
+
+    Raises:
+        ConfigError: invalid config; FileExistsError-like ValueError when ``out_dir`` holds a
+            model and ``force`` is False.
+    """
+    import torch
+    from stable_baselines3.common.callbacks import CallbackList
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    mission = validate_training(cfg)
+    out = Path(out_dir)
+    if (out / MODEL_FILE).exists() and not force:
+        raise ValueError(f"{out / MODEL_FILE} exists; pass --force to replace it or choose another --out")
+    torch.set_num_threads(cfg.torch_threads)
+    venv = _make_vec_env(cfg, mission)
+    try:
+        gamma = float(cfg.hyperparams.get("gamma", 0.99))
+        vec = VecNormalize(
+            venv, norm_obs=cfg.normalize.obs, norm_reward=cfg.normalize.reward,
+            clip_obs=cfg.normalize.clip_obs, clip_reward=cfg.normalize.clip_reward, gamma=gamma,
+        )
+        tb = str(out / "tb") if importlib.util.find_spec("tensorboard") is not None else None
+        model = _algo_class(cfg.algo)(
+            "MlpPolicy", vec, seed=cfg.seed, verbose=0, tensorboard_log=tb,
+            policy_kwargs=_policy_kwargs(cfg) or None, device=cfg.device, **cfg.hyperparams,
+        )
+        # The env and model were built: only now does the run folder appear.
+        if force and out.exists():
+            for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE):
+                (out / name).unlink(missing_ok=True)
+            shutil.rmtree(out / "checkpoints", ignore_errors=True)
+        out.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out / CONFIG_FILE)
+        callbacks = []
+        if cfg.checkpoint_every_steps is not None:
+            freq = max(cfg.checkpoint_every_steps // cfg.n_envs, 1)
+            callbacks.append(_checkpoint_callback(freq, out / "checkpoints", vec))
+        t0 = time.perf_counter()
+        interrupted = False
+        try:
+            model.learn(
+                total_timesteps=cfg.total_timesteps, callback=CallbackList(callbacks),
+                progress_bar=progress and _progress_bar_available(), tb_log_name=cfg.name,
+            )
+        except KeyboardInterrupt:
+            interrupted = True
+        wall = time.perf_counter() - t0
+        _save_model(model, out / MODEL_FILE)
+        _save_stats(vec, out / STATS_FILE)
+        return TrainResult(out, out / MODEL_FILE, out / STATS_FILE, int(model.num_timesteps), wall,
+                           interrupted)
+    finally:
+        venv.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading a policy safely
+# ---------------------------------------------------------------------------------------------
+_FLOAT_RE = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?inf")
+
+
+def _parse_box(item: Any, what: str, path: Path) -> Any:
+    """A ``Box`` from the printable fields SB3 stores beside a pickled space."""
+    from gymnasium import spaces
+
+    if not isinstance(item, dict) or "Box" not in str(item.get(":type:", "")):
+        raise ValueError(f"{path}: {what} is {item.get(':type:') if isinstance(item, dict) else item!r}; "
+                         "expected a Box space")
+    shape = tuple(int(v) for v in re.findall(r"\d+", str(item.get("_shape", ""))))
+    n = int(np.prod(shape)) if shape else 0
+    lo = [float(v) for v in _FLOAT_RE.findall(str(item.get("low", "")))]
+    hi = [float(v) for v in _FLOAT_RE.findall(str(item.get("high", "")))]
+    if not shape or len(lo) != n or len(hi) != n:
+        raise ValueError(f"{path}: cannot read the {what} (shape {shape}) of this model")
+    return spaces.Box(np.array(lo, np.float32).reshape(shape), np.array(hi, np.float32).reshape(shape),
+                      dtype=np.float32)
+
+
+def _model_file(path: str | Path) -> Path:
+    p = Path(path)
+    if p.is_dir():
+        p = p / MODEL_FILE
+    if not p.is_file():
+        raise FileNotFoundError(f"policy file {p} does not exist; expected an SB3 model.zip or its run folder")
+    return p
+
+
+def _read_archive(p: Path) -> dict[str, Any]:
+    """The ``data`` JSON of an SB3 archive, after checking it is one."""
+    if not zipfile.is_zipfile(p):
+        raise ValueError(f"{p} is not a stable-baselines3 model: not a zip file")
+    try:
+        with zipfile.ZipFile(p) as z:
+            names = set(z.namelist())
+            missing = [m for m in SB3_MEMBERS if m not in names]
+            if missing:
+                raise ValueError(
+                    f"{p} is not a stable-baselines3 model: the zip lacks {', '.join(missing)}"
+                )
+            data = json.loads(z.read("data").decode())
+    except (zipfile.BadZipFile, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p} is not a stable-baselines3 model: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{p} is not a stable-baselines3 model: 'data' is not a JSON object")
+    return data
+
+
+def _detect_algo(data: dict[str, Any], p: Path) -> str:
+    module = str((data.get("policy_class") or {}).get("__module__", "")) if isinstance(
+        data.get("policy_class"), dict) else ""
+    if "sac" in module or ("tau" in data and "ent_coef" in data and "replay_buffer_class" in data):
+        return "sac"
+    if "clip_range" in data and "n_epochs" in data:
+        return "ppo"
+    raise ValueError(f"{p} is an SB3 model of an algorithm evaluate does not know; expected PPO or SAC")
+
+
+def _safe_custom_objects(
+    data: dict[str, Any], algo: str, train_cfg: TrainingConfig | None, p: Path
+) -> dict[str, Any]:
+    """Replacements for every pickled field of the archive (so that none is unpickled)."""
+    from stable_baselines3.common.buffers import ReplayBuffer, RolloutBuffer
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
+    from stable_baselines3.sac.policies import SACPolicy
+
+    const = lambda _progress: 0.0  # noqa: E731  (schedules are irrelevant to inference)
+    known: dict[str, Any] = {
+        "policy_class": SACPolicy if algo == "sac" else ActorCriticPolicy,
+        "observation_space": _parse_box(data.get("observation_space"), "observation space", p),
+        "action_space": _parse_box(data.get("action_space"), "action space", p),
+        "lr_schedule": const, "clip_range": const, "clip_range_vf": None,
+        "rollout_buffer_class": RolloutBuffer, "replay_buffer_class": ReplayBuffer,
+        "train_freq": TrainFreq(1, TrainFrequencyUnit.STEP), "action_noise": None,
+        "_last_obs": None, "_last_episode_starts": None, "_last_original_obs": None,
+        "ep_info_buffer": None, "ep_success_buffer": None, "env": None,
+        "buffer_size": 1,  # no replay memory is needed to act
+    }
+    if train_cfg is not None:
+        known["policy_kwargs"] = {
+            **({"use_sde": False} if algo == "sac" else {}), **_policy_kwargs(train_cfg)
+        }
+    out = {}
+    for key, item in data.items():
+        if key in known:
+            out[key] = known[key]
+        elif isinstance(item, dict) and ":serialized:" in item:
+            raise ValueError(
+                f"{p}: field {key!r} is a pickled object that evaluate will not unpickle; "
+                "expected a model written by tridar-env train"
+            )
+    return out
+
+
+class SB3Policy:
+    """A saved SB3 policy as ``obs -> action``: VecNormalize statistics, then deterministic
+    ``predict``. Observations must have the shape the policy was trained on.
+
+    Attributes:
+        model: the SB3 algorithm; ``algo``: ``ppo`` | ``sac``; ``path``: the model file.
+    """
+
+    def __init__(self, model: Any, algo: str, path: Path, stats: dict[str, np.ndarray] | None) -> None:
+        self.model = model
+        self.algo = algo
+        self.path = path
+        self.obs_shape = tuple(model.observation_space.shape)
+        self.action_shape = tuple(model.action_space.shape)
+        self._norm = None
+        if stats is not None and bool(stats["norm_obs"]):
+            self._norm = (
+                stats["obs_mean"].astype(np.float64),
+                np.sqrt(stats["obs_var"].astype(np.float64) + float(stats["epsilon"])),
+                float(stats["clip_obs"]),
+            )
+
+    def reset(self) -> None:
+        """Stateless (MLP policy)."""
+
+    def normalize(self, obs: npt.ArrayLike) -> npt.NDArray[np.float32]:
+        """What VecNormalize fed the network during training."""
+        o = np.asarray(obs, dtype=np.float64)
+        if o.shape != self.obs_shape:
+            raise ValueError(
+                f"observation has shape {o.shape}; the policy {self.path} expects {self.obs_shape}"
+            )
+        if self._norm is not None:
+            mean, std, clip = self._norm
+            o = np.clip((o - mean) / std, -clip, clip)
+        return o.astype(np.float32)
+
+    def __call__(self, obs: npt.ArrayLike) -> npt.NDArray[np.float32]:
+        action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+
+def load_policy(
+    path: str | Path, *, cfg: MissionConfig | None = None, algo: str | None = None
+) -> SB3Policy:
+    """Load a policy written by :func:`train` (``model.zip`` or its run folder).
+
+    The archive is checked (a zip with SB3's members, a PPO or SAC model, Box spaces) before SB3
+    reads it, with replacements for every pickled field, so that nothing is unpickled.
+    ``vecnormalize.npz`` next to the model is applied when present.
+
+    Args:
+        path: ``model.zip`` or the run folder holding it.
+        cfg: mission config of the env the policy will fly: its action size is checked.
+        algo: ``ppo`` | ``sac``; default: ``training.yaml`` beside the model, else detected.
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: not an SB3 PPO/SAC model, or it does not fit
+            the env; one line naming the file and what was expected.
+    """
+    p = _model_file(path)
+    data = _read_archive(p)
+    train_cfg = None
+    if (p.parent / CONFIG_FILE).is_file():
+        try:
+            train_cfg = load_config(p.parent / CONFIG_FILE, model=TrainingConfig)
+        except ConfigError:
+            train_cfg = None
+    algo = algo or (train_cfg.algo if train_cfg is not None else _detect_algo(data, p))
+    if algo not in ("ppo", "sac"):
+        raise ValueError(f"algo={algo!r}; expected 'ppo' or 'sac'")
+    custom = _safe_custom_objects(data, algo, train_cfg, p)
+    try:
+        model = _algo_class(algo).load(p, custom_objects=custom, device="cpu")
+    except (RuntimeError, KeyError, ValueError, TypeError, AssertionError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"{p}: cannot load this {algo.upper()} model ({reason})") from None
+    stats_path = p.parent / (STATS_FILE if p.name == MODEL_FILE else f"{p.stem}_{STATS_FILE}")
+    if not stats_path.is_file() and p.stem.startswith("model_") and p.stem.endswith("_steps"):
+        stats_path = p.parent / f"vecnormalize_{p.stem[len('model_'):]}.npz"  # a checkpoint
+    stats = _load_stats(stats_path) if stats_path.is_file() else None
+    policy = SB3Policy(model, algo, p, stats)
+    if stats is not None and stats["obs_mean"].shape != policy.obs_shape:
+        raise ValueError(
+            f"{stats_path} holds statistics of shape {stats['obs_mean'].shape}; the policy expects "
+            f"{policy.obs_shape}"
+        )
+    if cfg is not None:
+        n_act = 6 if cfg.dynamics.chaser.attitude == "controlled" else 3
+        if policy.action_shape != (n_act,):
+            raise ValueError(
+                f"{p} outputs actions of shape {policy.action_shape}; mission {cfg.name!r} "
+                f"expects ({n_act},)"
+            )
+    return policy
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation
+# ---------------------------------------------------------------------------------------------
+def evaluate(
+    model: str | Path,
+    *,
+    env_id: str | None = None,
+    perception: str = "tridar",
+    episodes: int = 20,
+    seed: int = 0,
+    config: dict[str, Any] | None = None,
+    max_steps: int | None = None,
+    progress: bool = True,
+    on_episode: Callable[[dict[str, Any]], None] | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """Fly a saved policy for ``episodes`` episodes (deterministic actions) and summarise.
+
+    Episode ``i`` uses reset seed ``agents.campaign.env_seed(seed, i)``: the same as run ``i`` of a
+    campaign with that seed and ``controller: sb3:<model>``, so both give the same rows.
+
+    Args:
+        model: ``model.zip`` or its run folder.
+        env_id: default: the id the policy was trained on (from ``training.yaml``).
+        perception: ``tridar`` (the intended test), ``truth+noise`` or ``truth``.
+        episodes: number of episodes.
+        seed: evaluation seed.
+        config: mission-config overrides (default: those of the training run).
+        max_steps: optional step cap per episode.
+        progress: tqdm bar over episodes.
+        on_episode: called with each row.
+
+    Returns:
+        ``(table, summary)``: a ``pandas.DataFrame`` (one row per episode, campaign columns) and
+        :func:`agents.campaign.summarize` of it.
+    """
+    import pandas as pd
+
+    from agents.campaign import CampaignConfig, build_specs, run_one, summarize, validate_campaign
+
+    if episodes < 1:
+        raise ValueError(f"episodes={episodes}; expected >= 1")
+    p = _model_file(model)
+    train_cfg = None
+    if (p.parent / CONFIG_FILE).is_file():
+        train_cfg = load_config(p.parent / CONFIG_FILE, model=TrainingConfig)
+    env_id = env_id or (train_cfg.env_id if train_cfg else None)
+    if env_id is None:
+        raise ValueError(f"no env id given and no {CONFIG_FILE} beside {p}; pass --env-id")
+    if config is None:
+        config = dict(train_cfg.config) if train_cfg and _bare_id(train_cfg.env_id) == _bare_id(env_id) else {}
+    camp = CampaignConfig(
+        name=f"evaluate {p}", env_id=env_id, perception=perception,  # type: ignore[arg-type]
+        controller=f"sb3:{p.resolve()}", runs=episodes, seed=seed, max_steps=max_steps,
+        config=config, mission=train_cfg.mission if train_cfg else None,
+    )
+    validate_campaign(camp, "evaluate")
+    # Fail fast, with one line, on a bad file or a policy that does not fit the env.
+    from agents.campaign import mission_config
+
+    load_policy(p, cfg=mission_config(camp))
+    rows = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=episodes, desc="evaluate", unit="ep")
+    try:
+        for spec in build_specs(camp):
+            row = run_one(spec)
+            if row["outcome"] == "error":
+                raise ValueError(f"episode {spec.index} failed: {row['cause']}")
+            rows.append(row)
+            if on_episode is not None:
+                on_episode(row)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    table = pd.DataFrame(rows)
+    return table, summarize(table)

@@ -41,6 +41,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -49,7 +50,7 @@ import re
 import time
 import zlib
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -72,11 +73,11 @@ __all__ = [
     "build_specs",
     "episode_row",
     "format_summary",
+    "iter_results",
     "load_campaign",
     "make_env",
     "mission_config",
     "open_client",
-    "iter_results",
     "plot_campaign",
     "run_campaign",
     "run_one",
@@ -516,7 +517,7 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
         finally:
             env.close()
         row = {**head, **episode_row(res), **_traces(res)}
-    except Exception as exc:  # a crashed run is a result too; the campaign goes on
+    except Exception as exc:  # noqa: BLE001  (a crashed run is a result too; the campaign goes on)
         row = {
             **head, "outcome": "error", "cause": f"{type(exc).__name__}: {exc}"[:500],
             "docked": False, "trace_range_m": [], "trace_pos_err_m": [], "trace_att_err_deg": [],
@@ -548,7 +549,7 @@ def open_client(
     if scheduler:
         try:
             client = Client(scheduler, timeout=f"{connect_timeout_s}s")
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001  (any failure to connect is one error line)
             reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise ValueError(
                 f"cannot reach the Dask scheduler at {scheduler!r} within {connect_timeout_s:g} s "
@@ -572,6 +573,14 @@ def open_client(
         cluster.close()
 
 
+def _task_key(spec: RunSpec) -> str:
+    # Content-addressed: two campaigns sharing a scheduler never share a key by accident.
+    digest = hashlib.sha1(
+        json.dumps(asdict(spec), sort_keys=True, default=str).encode()
+    ).hexdigest()[:16]
+    return f"tridar-run-{spec.index:06d}-{digest}"
+
+
 def iter_results(specs: Sequence[RunSpec], client: Any | None = None) -> Iterator[dict[str, Any]]:
     """Rows of ``specs`` as they finish: on ``client`` (Dask), or serially in this process.
 
@@ -583,15 +592,12 @@ def iter_results(specs: Sequence[RunSpec], client: Any | None = None) -> Iterato
         return
     from dask.distributed import as_completed
 
-    futures = [
-        client.submit(run_one, s, key=f"tridar-run-{s.index:06d}-{s.env_seed:016x}", pure=False)
-        for s in specs
-    ]
+    futures = [client.submit(run_one, s, key=_task_key(s), pure=False) for s in specs]
     try:
         for fut in as_completed(futures):
             try:
                 row = fut.result()
-            except Exception as exc:  # the worker died (KilledWorker...): nothing is written
+            except Exception as exc:  # noqa: BLE001  (a dead worker: nothing is written, rerun retries)
                 log.warning("a run failed to execute: %s", exc)
                 continue
             fut.release()
@@ -648,6 +654,9 @@ def _atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
 def summarize(df: Any) -> dict[str, Any]:
     """Success rate with a Wilson 95% interval, causes and distributions of the main figures.
 
+    Runs that crashed (outcome ``error``) count as runs that did not dock, and are reported
+    separately from the termination causes.
+
     Args:
         df: a results table (``pandas.DataFrame``) or a list of row dicts.
     """
@@ -659,8 +668,8 @@ def summarize(df: Any) -> dict[str, Any]:
     n = len(df)
     k = int(df["docked"].sum()) if n else 0
     lo, hi = wilson_interval(k, n)
-    causes = df["cause"].value_counts().to_dict() if n else {}
-    errors = {c: v for c, v in causes.items() if ":" in str(c)}
+    errored = (df["outcome"] == "error") if n and "outcome" in df else None
+    causes = df.loc[~errored, "cause"].value_counts().to_dict() if errored is not None else {}
 
     def stat(col: str, fn: Callable[[np.ndarray], float], mask: Any = None) -> float:
         if col not in df:
@@ -671,7 +680,7 @@ def summarize(df: Any) -> dict[str, Any]:
         return float(fn(a)) if a.size else float("nan")
 
     med = np.median
-    p90 = lambda a: np.percentile(a, 90)  # noqa: E731
+    p90 = lambda a: np.percentile(a, 90)
     contact = df["cause"].isin(["docked", "collision"]) if n else None
     return {
         "runs": n,
@@ -679,8 +688,8 @@ def summarize(df: Any) -> dict[str, Any]:
         "success_rate": k / n if n else float("nan"),
         "wilson95_low": lo,
         "wilson95_high": hi,
-        "causes": {str(c): int(v) for c, v in causes.items() if c not in errors},
-        "errors": int(sum(errors.values())),
+        "causes": {str(c): int(v) for c, v in causes.items()},
+        "errors": int(errored.sum()) if errored is not None else 0,
         "delta_v_median_m_s": stat("delta_v_m_s", med),
         "delta_v_p90_m_s": stat("delta_v_m_s", p90),
         "contact_closing_speed_median_m_s": stat("contact_closing_speed", med, contact),
@@ -735,6 +744,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
     """
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
+    from matplotlib.ticker import FormatStrFormatter
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -743,7 +753,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
     # 1. Contact conditions against the envelope.
     fig = Figure(figsize=(10, 4.5), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
-    contact = df[df["cause"].isin(["docked", "collision"])] if len(df) else df
+    contact = df[df["cause"].isin(["docked", "collision"])] if "contact_lateral_offset" in df else df.iloc[:0]
     e = envelope
     ax1.add_patch(Rectangle(
         (e.axial_speed_min_m_s, 0.0), e.axial_speed_max_m_s - e.axial_speed_min_m_s,
@@ -772,7 +782,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
     # 2. Delta-v histogram by outcome.
     fig = Figure(figsize=(6, 4), layout="constrained")
     ax = fig.subplots()
-    ok = df[np.isfinite(df["delta_v_m_s"].astype(float))] if len(df) else df
+    ok = df[np.isfinite(df["delta_v_m_s"].astype(float))] if "delta_v_m_s" in df else df.iloc[:0]
     if len(ok):
         groups = [(c, g["delta_v_m_s"].to_numpy(float)) for c, g in ok.groupby("cause")]
         bins = np.histogram_bin_edges(ok["delta_v_m_s"].to_numpy(float), bins="auto")
@@ -805,6 +815,9 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
         ax.plot(centres, med_, "k-o", ms=3, label="median")
         ax.plot(centres, p90_, "k--", label="p90")
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+        ax.tick_params(axis="x", which="minor", labelsize=7)
         ax.legend(fontsize=8)
     ax.set(xlabel="range [m]", ylabel="position error [m]", title="estimation error vs range")
     ax.grid(alpha=0.3, which="both")
@@ -930,15 +943,17 @@ def run_campaign(
 
             bar = tqdm(total=cfg.runs, initial=cfg.runs - len(todo), desc=cfg.name, unit="run")
         try:
-            for row in iter_results(build_specs(cfg, todo), client):
-                _write_part(parts, row)
-                ran.append(int(row["index"]))
-                if bar is not None:
-                    docked += row["outcome"] == "docked"
-                    bar.update(1)
-                    bar.set_postfix(docked=f"{docked}/{len(ran)}", refresh=False)
-                if on_result is not None:
-                    on_result(row)
+            results = contextlib.closing(iter_results(build_specs(cfg, todo), client))
+            with results as rows:
+                for row in rows:
+                    _write_part(parts, row)
+                    ran.append(int(row["index"]))
+                    if bar is not None:
+                        docked += row["outcome"] == "docked"
+                        bar.update(1)
+                        bar.set_postfix(docked=f"{docked}/{len(ran)}", refresh=False)
+                    if on_result is not None:
+                        on_result(row)
         finally:
             if bar is not None:
                 bar.close()

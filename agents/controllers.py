@@ -29,7 +29,7 @@ from typing import Any
 
 from perception.config import MissionConfig
 
-__all__ = ["CONTROLLERS", "make_controller", "controller_names"]
+__all__ = ["CONTROLLERS", "controller_names", "make_controller"]
 
 #: name -> "module:attribute" of a class (or factory) called with the mission config.
 CONTROLLERS: dict[str, str] = {

@@ -40,6 +40,7 @@ class GlideslopeGains:
     kp_lat: float = 0.02  # [1/s^2]
     kd_lat: float = 0.35  # [1/s]
     lateral_cone: float = 0.15  # hold axial progress while |lateral| > cone * z + 0.05
+    commit_range_m: float = 1.0  # [m] no hold point closer than this (a stop there is a collision)
     kp_att: float = 0.4  # [1/s^2] attitude loop (6-DOF)
     kd_att: float = 1.2  # [1/s]
 
@@ -89,7 +90,7 @@ class GlideslopeController:
         z = max(p[2], 0.0)
         lat = np.hypot(p[0], p[1])
         v_des = float(np.clip(g.slope * z, g.v_final, g.v_max))
-        if lat > g.lateral_cone * z + 0.05:
+        if z > g.commit_range_m and lat > g.lateral_cone * z + 0.05:
             v_des = 0.0  # hold point until the lateral error is inside the cone
         a = np.empty(3)
         a[:2] = g.kp_lat * p[:2] + g.kd_lat * v[:2]

@@ -83,6 +83,7 @@ class SyncGains:
     att_kd: float = 0.6  # [1/s]  than the line of sight
     w_max: float = 0.1  # [rad/s]
     alpha_filter_s: float = 5.0  # [s] low-pass of the port's angular acceleration (feed-forward)
+    rate_gain: float = 0.3  # correction gain of the relative-rate predictor-corrector
     metric_filter_s: float = 2.0  # [s] low-pass of the errors judged for closing
     # matching thresholds to start closing (and looser ones to keep closing)
     att_ok_deg: float = 1.5
@@ -135,6 +136,8 @@ class SyncController:
         self._w_t_prev: FloatArray | None = None
         self._alpha_t = np.zeros(3)
         self._metrics: FloatArray | None = None  # low-passed (e, w_rel, h_perp, h_dot_perp)
+        self._w_rel_f: FloatArray | None = None  # filtered relative rate (sync and close)
+        self._alpha_applied = np.zeros(3)  # chaser angular acceleration of the last action
 
     # ------------------------------------------------------------------ helpers
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
@@ -160,6 +163,21 @@ class SyncController:
         self._w_t_prev = w_t
         return self._alpha_t
 
+    def _filter_rate(self, w: FloatArray, w_rel: FloatArray, alpha_t: FloatArray) -> FloatArray:
+        """Relative rate through a predictor-corrector that knows the torque just applied.
+
+        ``d/dt w_rel = alpha_port - alpha_chaser - w x w_rel`` in the docking frame; the chaser's
+        angular acceleration is its own command, so the prediction carries the control and the
+        correction (gain ``rate_gain``) only has to average the measurement noise.
+        """
+        if self._w_rel_f is None:
+            self._w_rel_f = w_rel.copy()
+            return self._w_rel_f
+        wf = self._w_rel_f
+        pred = wf + (alpha_t - self._alpha_applied - np.cross(w, wf)) * self.dt
+        self._w_rel_f = pred + self.g.rate_gain * (w_rel - pred)
+        return self._w_rel_f
+
     # ------------------------------------------------------------------ the law
     def command(self, obs: npt.NDArray[np.floating]) -> tuple[FloatArray, FloatArray]:
         """Body acceleration [m/s^2] and body angular acceleration [rad/s^2] commands."""
@@ -171,6 +189,7 @@ class SyncController:
             self.dwell = 0.0
             self._w_t_prev = None
             self._metrics = None
+            self._w_rel_f = None
             return self._los_brake(obs), np.zeros(3)
 
         p = obs[_S["port_position_dock"]].astype(np.float64)
@@ -190,8 +209,10 @@ class SyncController:
             self.s_dot = 0.0
 
         if self.phase == "approach":
+            self._w_rel_f = None
             return self._approach(p, p_dot, w, w_rel, dist)
 
+        w_rel = self._filter_rate(w, w_rel, alpha_t)
         # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration)
         e = _rotvec(R_dp @ R_ALIGNED)
         w_des = _sat(g.att_lam * e, g.w_max)
@@ -271,8 +292,9 @@ class SyncController:
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         # isotropic chaser inertia: w x (I w) vanishes, kept for clarity of the model
         torque = self.inertia * alpha + np.cross(w, self.inertia * w)
-        out = np.concatenate([thrust, torque / self.max_torque])
-        return np.clip(out, -1.0, 1.0).astype(np.float32)
+        out = np.clip(np.concatenate([thrust, torque / self.max_torque]), -1.0, 1.0)
+        self._alpha_applied = out[3:] * self.max_torque / self.inertia
+        return out.astype(np.float32)
 
 
 def _sat(v: FloatArray, limit: float) -> FloatArray:

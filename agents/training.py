@@ -45,14 +45,14 @@ from perception.config import CONFIG_DIR, ConfigError, MissionConfig, load_confi
 
 __all__ = [
     "NormalizeConfig",
-    "TrainingConfig",
-    "TrainResult",
     "SB3Policy",
-    "load_training",
-    "validate_training",
-    "train",
-    "load_policy",
+    "TrainResult",
+    "TrainingConfig",
     "evaluate",
+    "load_policy",
+    "load_training",
+    "train",
+    "validate_training",
 ]
 
 MODEL_FILE = "model.zip"
@@ -380,6 +380,15 @@ def _model_file(path: str | Path) -> Path:
     return p
 
 
+def _training_config_of(p: Path) -> TrainingConfig | None:
+    """The ``training.yaml`` of a model file (beside it, or one up for ``checkpoints/``)."""
+    for folder in (p.parent, p.parent.parent):
+        f = folder / CONFIG_FILE
+        if f.is_file():
+            return load_config(f, model=TrainingConfig)
+    return None
+
+
 def _read_archive(p: Path) -> dict[str, Any]:
     """The ``data`` JSON of an SB3 archive, after checking it is one."""
     if not zipfile.is_zipfile(p):
@@ -419,11 +428,10 @@ def _safe_custom_objects(
     from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
     from stable_baselines3.sac.policies import SACPolicy
 
-    const = lambda _progress: 0.0  # noqa: E731  (schedules are irrelevant to inference)
+    const = lambda _progress: 0.0
     known: dict[str, Any] = {
         "policy_class": SACPolicy if algo == "sac" else ActorCriticPolicy,
-        "observation_space": _parse_box(data.get("observation_space"), "observation space", p),
-        "action_space": _parse_box(data.get("action_space"), "action space", p),
+        "observation_space": None, "action_space": None,
         "lr_schedule": const, "clip_range": const, "clip_range_vf": None,
         "rollout_buffer_class": RolloutBuffer, "replay_buffer_class": ReplayBuffer,
         "train_freq": TrainFreq(1, TrainFrequencyUnit.STEP), "action_noise": None,
@@ -431,20 +439,21 @@ def _safe_custom_objects(
         "ep_info_buffer": None, "ep_success_buffer": None, "env": None,
         "buffer_size": 1,  # no replay memory is needed to act
     }
-    if train_cfg is not None:
+    pk = data.get("policy_kwargs")
+    if train_cfg is not None and isinstance(pk, dict) and ":serialized:" in pk:
+        # Pickled because of the activation class: rebuilt from training.yaml instead.
         known["policy_kwargs"] = {
             **({"use_sde": False} if algo == "sac" else {}), **_policy_kwargs(train_cfg)
         }
-    out = {}
     for key, item in data.items():
-        if key in known:
-            out[key] = known[key]
-        elif isinstance(item, dict) and ":serialized:" in item:
+        if key not in known and isinstance(item, dict) and ":serialized:" in item:
             raise ValueError(
                 f"{p}: field {key!r} is a pickled object that evaluate will not unpickle; "
                 "expected a model written by tridar-env train"
             )
-    return out
+    known["observation_space"] = _parse_box(data.get("observation_space"), "observation space", p)
+    known["action_space"] = _parse_box(data.get("action_space"), "action space", p)
+    return {key: known[key] for key in data if key in known}
 
 
 class SB3Policy:
@@ -509,12 +518,10 @@ def load_policy(
     """
     p = _model_file(path)
     data = _read_archive(p)
-    train_cfg = None
-    if (p.parent / CONFIG_FILE).is_file():
-        try:
-            train_cfg = load_config(p.parent / CONFIG_FILE, model=TrainingConfig)
-        except ConfigError:
-            train_cfg = None
+    try:
+        train_cfg = _training_config_of(p)
+    except ConfigError:
+        train_cfg = None  # not ours to read: fall back on what the archive says
     algo = algo or (train_cfg.algo if train_cfg is not None else _detect_algo(data, p))
     if algo not in ("ppo", "sac"):
         raise ValueError(f"algo={algo!r}; expected 'ppo' or 'sac'")
@@ -533,6 +540,12 @@ def load_policy(
         raise ValueError(
             f"{stats_path} holds statistics of shape {stats['obs_mean'].shape}; the policy expects "
             f"{policy.obs_shape}"
+        )
+    from tridar_env.env import OBS_DIM
+
+    if policy.obs_shape != (OBS_DIM,):
+        raise ValueError(
+            f"{p} expects observations of shape {policy.obs_shape}; DockingEnv gives ({OBS_DIM},)"
         )
     if cfg is not None:
         n_act = 6 if cfg.dynamics.chaser.attitude == "controlled" else 3
@@ -586,9 +599,7 @@ def evaluate(
     if episodes < 1:
         raise ValueError(f"episodes={episodes}; expected >= 1")
     p = _model_file(model)
-    train_cfg = None
-    if (p.parent / CONFIG_FILE).is_file():
-        train_cfg = load_config(p.parent / CONFIG_FILE, model=TrainingConfig)
+    train_cfg = _training_config_of(p)
     env_id = env_id or (train_cfg.env_id if train_cfg else None)
     if env_id is None:
         raise ValueError(f"no env id given and no {CONFIG_FILE} beside {p}; pass --env-id")

@@ -293,7 +293,9 @@ class PAHConfig(StrictModel):
     max_candidates: Annotated[int, Field(ge=1)] = 20_000
     fit_inlier_m: PositiveFloat = 0.05
     precheck_points: Annotated[int, Field(ge=10)] = 60
-    accept_fitness: UnitFloat = 0.8
+    accept_fitness: UnitFloat = Field(
+        0.98, description="stop once a hypothesis has this fraction of the scan within 3 sigma"
+    )
 
 
 class CorridorConfig(StrictModel):

@@ -37,7 +37,7 @@ from perception.targets import RegionOfInterest, TargetModel
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["TriDAR", "PipelineStats", "nominal_attitude", "deskew"]
+__all__ = ["TriDAR", "PipelineStats", "nominal_attitude", "approach_pose", "deskew"]
 
 #: Points a frame needs for a bearing fix and for a registration.
 MIN_BEARING_POINTS = 5
@@ -55,6 +55,16 @@ def nominal_attitude(cfg: MissionConfig, target: TargetModel) -> FloatArray:
     R_chaser_sensor = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
     R_target_dock = target.T_target_port[:3, :3] @ R_PORT_DOCK  # chaser dock frame == body axes
     return R_chaser_sensor.T @ R_target_dock.T
+
+
+def approach_pose(
+    cfg: MissionConfig, target: TargetModel, range_m: float, lateral: tuple[float, float] = (0.0, 0.0)
+) -> FloatArray:
+    """``T_sensor_target`` on the nominal approach: docking frame facing the port, the port at
+    ``(lateral_x, lateral_y, range_m)`` in the sensor frame (scripted trajectories, tests)."""
+    R = nominal_attitude(cfg, target)
+    p_port_s = np.array([lateral[0], lateral[1], range_m], dtype=np.float64)
+    return make_T(R, p_port_s - R @ target.T_target_port[:3, 3])
 
 
 def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:

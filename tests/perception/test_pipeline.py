@@ -9,25 +9,15 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from perception.config import MissionConfig, load_config
+from perception.config import load_config
 from perception.filter import PoseFilter
 from perception.geometry import make_T, pose_error
-from perception.pipeline import TriDAR, deskew, nominal_attitude
+from perception.pipeline import TriDAR, approach_pose, deskew
 from perception.registration import icp, prepare_model
 from perception.scan_patterns import make_pattern
 from perception.sensors import RelativeMotion, TriDARSensor
 from perception.state import Mode, StateVector, TruthScene
 from perception.targets import load_target
-
-
-def _approach_pose(cfg: MissionConfig, target, range_m: float, lateral=(0.0, 0.0)) -> np.ndarray:
-    """T_sensor_target with the chaser docking frame facing the port at ``range_m``."""
-    R = nominal_attitude(cfg, target)
-    port = target.T_target_port
-    # Sensor origin on the port axis: target origin = sensor - R (port + axis * range).
-    p_port_s = np.array([lateral[0], lateral[1], range_m])
-    t = p_port_s - R @ port[:3, 3]
-    return make_T(R, t)
 
 
 class Fly:
@@ -61,7 +51,7 @@ def test_bearing_mode_outputs_only_bearing_range_and_rate() -> None:
     target = load_target(cfg.target.name)
     tri = TriDAR(cfg, target)
     tri.reset(np.random.default_rng(0))
-    fly = Fly(_approach_pose(cfg, target, 420.0), v=(0.0, 0.0, -0.3))
+    fly = Fly(approach_pose(cfg, target, 420.0), v=(0.0, 0.0, -0.3))
     hist = _run(tri, fly, 25, dt=0.5)
     assert all(sv.mode == Mode.BEARING for _, sv in hist)
     t, sv = hist[-1]
@@ -84,7 +74,7 @@ def test_external_seed_acquires_and_tracks_to_centimetres() -> None:
     target = load_target(cfg.target.name)
     tri = TriDAR(cfg, target)
     tri.reset(np.random.default_rng(1))
-    fly = Fly(_approach_pose(cfg, target, 25.0, lateral=(0.3, -0.2)), v=(0.0, 0.0, -0.1))
+    fly = Fly(approach_pose(cfg, target, 25.0, lateral=(0.3, -0.2)), v=(0.0, 0.0, -0.1))
     seed = make_T(Rotation.from_euler("xyz", [2, -1, 3], degrees=True).as_matrix(), [0.1, -0.05, 0.2]) @ fly.T(0.0)
 
     def hook(k: int, t: float) -> None:
@@ -142,7 +132,7 @@ def test_pipeline_is_deterministic_for_a_seed() -> None:
     for _ in range(2):
         tri = TriDAR(cfg, target)
         tri.reset(np.random.default_rng(5))
-        fly = Fly(_approach_pose(cfg, target, 20.0), v=(0.0, 0.0, -0.05))
+        fly = Fly(approach_pose(cfg, target, 20.0), v=(0.0, 0.0, -0.05))
         hist = _run(tri, fly, 12, hook=lambda k, t, tri=tri, fly=fly: tri.seed_pose(fly.T(t), t) if k == 0 else None)
         runs.append(np.concatenate([np.r_[sv.position, sv.quaternion, sv.velocity, sv.range] for _, sv in hist]))
     np.testing.assert_array_equal(runs[0], runs[1])

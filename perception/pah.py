@@ -1,0 +1,897 @@
+"""Polygonal aspect hashing (PAH): model-based acquisition of the target pose (seed 000 section 3.1).
+
+Offline (:meth:`PAHDatabase.build`, section 3.1.1): a sparse, evenly spread set ``S`` of model
+surface points (farthest-point subsampling of dense area-uniform samples) and every segment
+``L(s_i, s_j)`` between them, stored in two tables:
+
+- a *length table*: the undirected segments sorted by length, indexed by quantised length
+  (``length_bin_m`` bins, CSR offsets), for the direct lookup of the first polygon edge;
+- a *connectivity table*: the (M, M) lengths of all segments by end point, so that "the points
+  at distance ``d_0k +- tol`` from the matched ``s_0`` and ``d_1k +- tol`` from ``s_1``..." is an
+  AND of banded rows.
+
+Runtime (:meth:`PAHDatabase.localize`, section 3.1.2): an N-point polygon (4-6 points) of large
+area is picked from the scan by greedy farthest-point selection from a random seed point. All model
+polygons whose pairwise distances match the scan polygon's within the tolerance are enumerated by a
+partial tree traversal (first edge from the length table, each further vertex from the
+connectivity rows of the vertices matched so far), vectorised over the partial matches. Each match gives a pose ``p = R s + T`` (eq. 1) by a batched
+SVD; matches that are mirror images, that show back faces to the sensor or (constrained search)
+that fall outside the approach corridor are dropped before any fit check. The survivors are
+scored by a surface-fit precheck on a decimated scan (an occupancy grid of the voxels near the
+model surface, O(1) per point), the best few by the full O(n) check against the dense model's
+KD-tree, and the distinct best ones are polished by a short ICP and scored on the whole scan (so a
+near-symmetric alternative competes instead of the first fit winning). More polygons are tried
+until a hypothesis fits ``accept_fitness`` of the scan, or the polygon or time budget runs out;
+the winner is refined by a full ICP.
+
+Constrained search (section 5.3, the docking case): a :class:`PoseConstraint` bounds the attitude
+about a nominal one and the position to a cone about the boresight and a range interval. Because
+the attitude is bounded, every polygon edge must point, once rotated by the nominal attitude,
+within the attitude tolerance of the scan edge: this prunes the tree at every level, so
+constrained acquisition costs a small fraction of the unconstrained one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from perception.config import CorridorConfig, ICPConfig, PAHConfig
+from perception.registration import (
+    ModelCloud,
+    RegistrationResult,
+    icp,
+    prepare_model,
+    validate_points,
+)
+from perception.targets import TargetModel
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+__all__ = ["PAH_FORMAT_VERSION", "PAHDatabase", "PoseConstraint"]
+
+#: Version of the ``.npz`` layout written by :meth:`PAHDatabase.save`.
+PAH_FORMAT_VERSION = 1
+
+# Dense samples the sparse set is drawn from (shared with ICP's prepared model).
+_DENSE_POINTS = 20_000
+# A matched model normal may face away from the scan ray by at most this cosine: the sparse point
+# matched to a scan point can sit just round an edge, so the test is lenient.
+_VISIBLE_COS = 0.35
+# Voxels per metre are capped so the fit grid of a large target stays below ~16 M cells.
+_MAX_GRID_CELLS = 16_000_000
+
+
+# ---------------------------------------------------------------------------------------------
+# Corridor constraint
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class PoseConstraint:
+    """Admissible poses of the target for a constrained (docking-corridor) acquisition.
+
+    A pose ``T_sensor_target`` is admitted when all of these hold:
+
+    - attitude: the angle of ``R_sensor_target_nominal^T R`` is at most ``attitude_tol_rad``;
+    - line of sight: the target origin lies inside the cone of half-angle
+      ``boresight_half_angle_rad`` about the sensor +z (boresight) axis;
+    - range: ``range_min_m <= |t| <= range_max_m``.
+
+    Attributes:
+        R_sensor_target_nominal: (3, 3) nominal attitude of the target in the sensor frame.
+        attitude_tol_rad: attitude tolerance [rad], in (0, pi].
+        boresight_half_angle_rad: half-angle of the line-of-sight cone [rad], in (0, pi].
+        range_min_m: minimum range of the target origin [m], >= 0.
+        range_max_m: maximum range [m], > range_min_m.
+    """
+
+    R_sensor_target_nominal: FloatArray
+    attitude_tol_rad: float
+    boresight_half_angle_rad: float
+    range_min_m: float = 0.0
+    range_max_m: float = math.inf
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R_sensor_target_nominal, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            raise ValueError(
+                f"R_sensor_target_nominal has shape {R.shape}; expected a finite (3, 3) rotation"
+            )
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6):
+            raise ValueError("R_sensor_target_nominal is not a rotation (orthonormal, det +1)")
+        self.R_sensor_target_nominal = R
+        for name in ("attitude_tol_rad", "boresight_half_angle_rad"):
+            v = float(getattr(self, name))
+            if not (0.0 < v <= math.pi):
+                raise ValueError(f"{name}={v}; expected an angle in (0, pi] [rad]")
+            setattr(self, name, v)
+        lo, hi = float(self.range_min_m), float(self.range_max_m)
+        if not (lo >= 0.0 and hi > lo) or math.isnan(hi):
+            raise ValueError(
+                f"range_min_m={lo}, range_max_m={hi}; expected 0 <= range_min_m < range_max_m [m]"
+            )
+        self.range_min_m, self.range_max_m = lo, hi
+
+    @classmethod
+    def from_corridor(
+        cls, cfg: CorridorConfig, R_sensor_target_nominal: npt.ArrayLike
+    ) -> PoseConstraint:
+        """The constraint of an approach corridor.
+
+        ``cfg.half_angle_deg`` is the line-of-sight cone: the target origin must lie within that
+        angle of the sensor boresight (+z); ``cfg.attitude_tolerance_deg`` bounds the attitude
+        error about ``R_sensor_target_nominal``; the range limits are copied.
+        """
+        if not isinstance(cfg, CorridorConfig):
+            raise ValueError(f"cfg is a {type(cfg).__name__}; expected a CorridorConfig")
+        return cls(
+            R_sensor_target_nominal=np.asarray(R_sensor_target_nominal, dtype=np.float64),
+            attitude_tol_rad=math.radians(cfg.attitude_tolerance_deg),
+            boresight_half_angle_rad=math.radians(cfg.half_angle_deg),
+            range_min_m=float(cfg.min_range_m),
+            range_max_m=float(cfg.max_range_m),
+        )
+
+    def attitude_ok(self, R: FloatArray, slack_rad: float = 0.0) -> npt.NDArray[np.bool_]:
+        """(K,) True where the angle of ``R_nominal^T R_k`` is within tolerance (+ slack)."""
+        # trace(Rn^T R) = sum of the element-wise product.
+        tr = np.einsum("ij,kij->k", self.R_sensor_target_nominal, R)
+        lim = math.cos(min(self.attitude_tol_rad + slack_rad, math.pi))
+        return 0.5 * (tr - 1.0) >= lim - 1e-12
+
+    def position_ok(self, t: FloatArray, slack_m: float = 0.0) -> npt.NDArray[np.bool_]:
+        """(K,) True where positions (K, 3) [m] are in the cone and range interval (+ slack)."""
+        r = np.linalg.norm(t, axis=1)
+        in_range = (r >= self.range_min_m - slack_m) & (r <= self.range_max_m + slack_m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos_los = np.where(r > 0, t[:, 2] / r, 1.0)
+            ang = np.arccos(np.clip(cos_los, -1.0, 1.0))
+            ang_slack = np.where(r > 0, np.arcsin(np.clip(slack_m / r, 0.0, 1.0)), 0.0)
+        return in_range & (ang <= self.boresight_half_angle_rad + ang_slack + 1e-12)
+
+    def admits_batch(self, Ts: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """Vectorised :meth:`admits`: Ts (K, 4, 4) -> (K,) bool (non-finite poses are refused)."""
+        T = np.asarray(Ts, dtype=np.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"Ts has shape {T.shape}; expected (K, 4, 4) transforms")
+        finite = np.all(np.isfinite(T), axis=(1, 2))
+        T = np.where(finite[:, None, None], T, np.eye(4))
+        return finite & self.attitude_ok(T[:, :3, :3]) & self.position_ok(T[:, :3, 3])
+
+    def admits(self, T: npt.ArrayLike) -> bool:
+        """True when the pose ``T_sensor_target`` (4, 4) lies inside the corridor."""
+        arr = np.asarray(T, dtype=np.float64)
+        if arr.shape != (4, 4):
+            raise ValueError(f"T has shape {arr.shape}; expected a (4, 4) transform")
+        return bool(self.admits_batch(arr[None])[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+# ---------------------------------------------------------------------------------------------
+def _farthest_point_indices(points: FloatArray, n: int, start: int) -> IntArray:
+    """Greedy farthest-point subsampling: ``n`` indices of ``points`` spread evenly."""
+    m = points.shape[0]
+    n = min(n, m)
+    idx = np.empty(n, dtype=np.int64)
+    idx[0] = start
+    d = np.linalg.norm(points - points[start], axis=1)
+    for k in range(1, n):
+        idx[k] = int(np.argmax(d))
+        d = np.minimum(d, np.linalg.norm(points - points[idx[k]], axis=1))
+    return idx
+
+
+def _ragged(starts: IntArray, ends: IntArray) -> tuple[IntArray, IntArray]:
+    """Expand ranges ``[starts_k, ends_k)``: returns (owner k, index) of every element."""
+    counts = np.maximum(ends - starts, 0)
+    total = int(counts.sum())
+    owner = np.repeat(np.arange(starts.shape[0]), counts)
+    first = np.cumsum(counts) - counts
+    pos = np.arange(total) - np.repeat(first, counts)
+    return owner, starts[owner] + pos
+
+
+def _kabsch_batch(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Batched rigid fits ``Q ~= R S_k + t`` (eq. 1) of model polygons to one scan polygon.
+
+    Args:
+        S: (K, N, 3) model polygons [m], target frame.
+        Q: (N, 3) scan polygon [m], sensor frame.
+
+    Returns:
+        R (K, 3, 3) proper rotations and t (K, 3) [m].
+    """
+    cs = S.mean(axis=1)
+    cq = Q.mean(axis=0)
+    H = np.einsum("kni,nj->kij", S - cs[:, None, :], Q - cq)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("kji,klj->kil", Vt, U)))
+    d[d == 0] = 1.0
+    Vt[:, 2, :] *= d[:, None]
+    R = np.einsum("kji,klj->kil", Vt, U)
+    t = cq - np.einsum("kij,kj->ki", R, cs)
+    return R, t
+
+
+@dataclass(eq=False)
+class _FitGrid:
+    """Boolean voxel grid of the region within ``threshold_m`` of the model surface."""
+
+    occupied: npt.NDArray[np.bool_]
+    origin: FloatArray
+    voxel_m: float
+    threshold_m: float
+
+    @classmethod
+    def build(cls, dense: FloatArray, threshold_m: float) -> _FitGrid:
+        lo = dense.min(axis=0) - threshold_m - 1e-6
+        hi = dense.max(axis=0) + threshold_m + 1e-6
+        voxel = 0.5 * threshold_m
+        size = hi - lo
+        if np.prod(np.ceil(size / voxel)) > _MAX_GRID_CELLS:
+            voxel = float(np.cbrt(np.prod(size) / _MAX_GRID_CELLS)) * 1.01
+        shape = np.maximum(np.ceil(size / voxel).astype(np.int64), 1)
+        grid = np.zeros(tuple(shape), dtype=bool)
+        ijk = np.clip(np.floor((dense - lo) / voxel).astype(np.int64), 0, shape - 1)
+        grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+        r = max(round(threshold_m / voxel), 0)
+        if r > 0:
+            ax = np.arange(-r, r + 1)
+            ball = (ax[:, None, None] ** 2 + ax[None, :, None] ** 2 + ax[None, None, :] ** 2) <= (
+                r * r
+            )
+            grid = ndimage.binary_dilation(grid, structure=ball)
+        return cls(grid, lo, float(voxel), float(threshold_m))
+
+    def inside(self, X: FloatArray) -> npt.NDArray[np.bool_]:
+        """(...,) True where points (..., 3) [m, target frame] are near the surface."""
+        shape = np.asarray(self.occupied.shape)
+        ijk = np.floor((X - self.origin) / self.voxel_m).astype(np.int64)
+        ok = np.all((ijk >= 0) & (ijk < shape), axis=-1)
+        ijk = np.where(ok[..., None], ijk, 0)
+        flat = (ijk[..., 0] * shape[1] + ijk[..., 1]) * shape[2] + ijk[..., 2]
+        return ok & self.occupied.reshape(-1)[flat]
+
+
+# ---------------------------------------------------------------------------------------------
+# Database
+# ---------------------------------------------------------------------------------------------
+_ARRAY_KEYS = ("points", "normals", "seg_i", "seg_j", "seg_len", "bin_ptr", "dist")
+
+
+@dataclass
+class _Hypothesis:
+    """A candidate pose after a short ICP, scored on the whole scan."""
+
+    T: FloatArray
+    fitness: float
+    likelihood: float
+
+
+class PAHDatabase:
+    """PAH reference database of one target, and the runtime localization that uses it.
+
+    Attributes:
+        target: the target model (needed by :meth:`localize` for the fit check and ICP), or None
+            for a database loaded without its target (see :meth:`attach`).
+        config: the PAH settings it was built with.
+        model_hash: the geometry hash of the target it was built on.
+        target_name: the target's name.
+        points: (M, 3) sparse model points ``S`` [m], target frame.
+        normals: (M, 3) their unit outward normals.
+        coverage_m: 90th percentile of the distance from a surface point to the nearest ``s_i``
+            [m]: how far a scan point may be from its match in ``S``.
+        seg_i, seg_j, seg_len: the length table: undirected segments (i < j) sorted by length [m].
+        bin_ptr: (B + 1,) offsets into the sorted segments of each ``length_bin_m`` bin.
+        dist: (M, M) the connectivity table: ``dist[i, j] = |s_i - s_j|`` [m].
+    """
+
+    def __init__(
+        self,
+        *,
+        config: PAHConfig,
+        model_hash: str,
+        target_name: str,
+        points: FloatArray,
+        normals: FloatArray,
+        coverage_m: float,
+        seg_i: IntArray,
+        seg_j: IntArray,
+        seg_len: FloatArray,
+        bin_ptr: IntArray,
+        dist: FloatArray,
+        target: TargetModel | None = None,
+    ) -> None:
+        self.config = config
+        self.model_hash = model_hash
+        self.target_name = target_name
+        self.points = points
+        self.normals = normals
+        self.coverage_m = float(coverage_m)
+        self.seg_i, self.seg_j, self.seg_len = seg_i, seg_j, seg_len
+        self.bin_ptr = bin_ptr
+        self.dist = dist
+        self.max_length_m = float(seg_len[-1]) if seg_len.size else 0.0
+        self.target: TargetModel | None = None
+        if target is not None:
+            self.attach(target)
+
+    def __repr__(self) -> str:
+        return (
+            f"PAHDatabase(target={self.target_name!r}, points={self.points.shape[0]}, "
+            f"segments={self.seg_len.shape[0]}, polygon_size={self.config.polygon_size})"
+        )
+
+    # -- offline --------------------------------------------------------------------------------
+    @classmethod
+    def build(
+        cls, target: TargetModel, config: PAHConfig | None = None, seed: int = 0
+    ) -> PAHDatabase:
+        """Build the reference database of a target (seed 000 section 3.1.1).
+
+        Args:
+            target: the target model (library target or any loaded mesh).
+            config: PAH settings; defaults when None.
+            seed: seed of the deterministic surface sampling and subsampling.
+
+        Returns:
+            The database, holding a reference to ``target``.
+
+        Raises:
+            ValueError: ``target`` is not a TargetModel, ``config`` not a PAHConfig, or the mesh has
+                no surface.
+        """
+        if not isinstance(target, TargetModel):
+            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")
+        cfg = PAHConfig() if config is None else config
+        if not isinstance(cfg, PAHConfig):
+            raise ValueError(f"config is a {type(cfg).__name__}; expected a PAHConfig")
+        if len(target.mesh.faces) == 0 or not float(target.mesh.area) > 0:
+            raise ValueError(f"target {target.name!r} has no surface; PAH needs a mesh with area")
+        dense_pts, dense_nrm = target.sample_surface(_DENSE_POINTS, seed=int(seed))
+        dense = np.asarray(dense_pts)
+        start = int(np.random.default_rng(seed).integers(dense.shape[0]))
+        idx = _farthest_point_indices(dense, int(cfg.model_points), start)
+        S = np.ascontiguousarray(dense[idx], dtype=np.float64)
+        N = np.ascontiguousarray(dense_nrm[idx], dtype=np.float64)
+        m = S.shape[0]
+        d_cover, _ = cKDTree(S).query(dense, k=1)
+        coverage = float(np.percentile(d_cover, 90))
+
+        D = np.linalg.norm(S[:, None, :] - S[None, :, :], axis=-1)
+        iu, ju = np.triu_indices(m, k=1)
+        lengths = D[iu, ju]
+        order = np.argsort(lengths, kind="stable")
+        seg_len = lengths[order]
+        n_bins = math.floor(seg_len[-1] / cfg.length_bin_m) + 1
+        edges = np.arange(n_bins + 1) * cfg.length_bin_m
+        bin_ptr = np.searchsorted(seg_len, edges, side="left").astype(np.int64)
+        bin_ptr[-1] = seg_len.shape[0]
+        return cls(
+            config=cfg, model_hash=target.model_hash, target_name=target.name, points=S,
+            normals=N, coverage_m=coverage, seg_i=iu[order].astype(np.int64),
+            seg_j=ju[order].astype(np.int64), seg_len=seg_len, bin_ptr=bin_ptr, dist=D,
+            target=target,
+        )
+
+    def attach(self, target: TargetModel) -> None:
+        """Attach the target the database was built on (its geometry hash must match).
+
+        Raises:
+            ValueError: not a TargetModel, or a target with different geometry.
+        """
+        if not isinstance(target, TargetModel):
+            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")
+        if target.model_hash != self.model_hash:
+            raise ValueError(
+                f"target {target.name!r} has model hash {target.model_hash[:12]}...; this PAH "
+                f"database was built on {self.target_name!r} ({self.model_hash[:12]}...)"
+            )
+        self.target = target
+
+    def save(self, path: str | Path) -> Path:
+        """Write the database to ``path`` (``.npz`` appended if missing; no pickles).
+
+        Returns:
+            The path written.
+        """
+        p = Path(path)
+        if p.suffix != ".npz":
+            p = p.with_name(p.name + ".npz")
+        p.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {k: getattr(self, k) for k in _ARRAY_KEYS}
+        np.savez(
+            p,
+            format_version=np.int64(PAH_FORMAT_VERSION),
+            model_hash=np.str_(self.model_hash),
+            target_name=np.str_(self.target_name),
+            config_json=np.str_(self.config.model_dump_json()),
+            coverage_m=np.float64(self.coverage_m),
+            **arrays,
+        )
+        return p
+
+    @classmethod
+    def load(cls, path: str | Path, target: TargetModel | None = None) -> PAHDatabase:
+        """Read a database written by :meth:`save`.
+
+        Args:
+            path: the ``.npz`` file.
+            target: the target to attach; its geometry hash must match the database's.
+
+        Raises:
+            FileNotFoundError: no such file.
+            ValueError: not a PAH database, another format version, a corrupt file, or a target
+                whose geometry differs from the one the database was built on. The message names
+                the file.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"PAH database file {p} does not exist")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                if "format_version" not in z.files:
+                    raise ValueError("no format_version entry; not a PAH database")
+                version = int(z["format_version"])
+                if version != PAH_FORMAT_VERSION:
+                    raise ValueError(
+                        f"format version {version}; this code reads version {PAH_FORMAT_VERSION}"
+                    )
+                meta = {k: str(z[k]) for k in ("model_hash", "target_name", "config_json")}
+                coverage = float(z["coverage_m"])
+                arrays = {k: np.asarray(z[k]) for k in _ARRAY_KEYS}
+            config = PAHConfig.model_validate(json.loads(meta["config_json"]))
+        except ValueError as exc:  # includes pydantic's ValidationError and bad JSON
+            raise ValueError(f"PAH database {p}: {exc}") from None
+        except (OSError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+            raise ValueError(f"PAH database {p} is unreadable or corrupt: {exc!r}") from None
+        _check_layout(p, arrays)
+        db = cls(
+            config=config, model_hash=meta["model_hash"], target_name=meta["target_name"],
+            coverage_m=coverage, **arrays,
+        )
+        if target is not None:
+            try:
+                db.attach(target)
+            except ValueError as exc:
+                raise ValueError(f"PAH database {p}: {exc}") from None
+        return db
+
+    # -- runtime: polygon matching ---------------------------------------------------------------
+    def match_polygon(
+        self,
+        Q: npt.ArrayLike,
+        tolerance_m: float,
+        rng: np.random.Generator,
+        R_nominal: npt.ArrayLike | None = None,
+        direction_tol_rad: float | None = None,
+    ) -> IntArray:
+        """All model polygons whose pairwise distances match a scan polygon's (partial traversal).
+
+        The first edge comes from the length table; each further vertex ``k`` is the set of model
+        points whose distances to the already matched vertices all match, found as the AND of
+        rows of the connectivity table banded at ``|dist - d_vk| <= tol`` (one boolean row per
+        partial match, vectorised over the partial matches).
+
+        Args:
+            Q: (N, 3) scan polygon [m], sensor frame.
+            tolerance_m: distance tolerance per edge [m].
+            rng: draws the subset kept when a level exceeds ``max_candidates``.
+            R_nominal: (3, 3) nominal attitude for direction pruning (constrained search).
+            direction_tol_rad: angle [rad] the rotated model edge ``R_nominal (s_k - s_0)`` may make
+                with the scan edge ``q_k - q_0`` (the attitude tolerance; widened here by the length
+                tolerance). Both or neither of ``R_nominal`` and this.
+
+        Returns:
+            (K, N) model-point indices, row k matching ``Q`` vertex by vertex.
+        """
+        Qa = np.asarray(Q, dtype=np.float64)
+        if Qa.ndim != 2 or Qa.shape[1] != 3 or Qa.shape[0] < 3:
+            raise ValueError(f"Q has shape {Qa.shape}; expected an (N, 3) polygon with N >= 3")
+        n_poly = Qa.shape[0]
+        dq = np.linalg.norm(Qa[:, None, :] - Qa[None, :, :], axis=-1)
+        cap = int(self.config.max_candidates)
+        S = self.points
+        use_dir = R_nominal is not None and direction_tol_rad is not None
+        E = (Qa - Qa[0]) @ np.asarray(R_nominal, dtype=np.float64) if use_dir else None
+
+        def dir_ok(k: int, model_vec: FloatArray) -> npt.NDArray[np.bool_]:
+            slack = math.asin(min(1.0, 2.0 * tolerance_m / max(dq[0, k], 1e-9)))
+            lim = math.cos(min(math.pi, float(direction_tol_rad) + slack))
+            ln = np.linalg.norm(model_vec, axis=1) * dq[0, k]
+            return model_vec @ E[k] >= lim * ln
+
+        # Level 1: the first edge, direct lookup by quantised length (both orientations).
+        d = dq[0, 1]
+        b = self.config.length_bin_m
+        nb = self.bin_ptr.shape[0] - 1
+        lo_b = min(int(max(d - tolerance_m, 0.0) // b), nb)
+        hi_b = min(int((d + tolerance_m) // b), nb - 1)
+        if hi_b < lo_b:
+            return np.empty((0, n_poly), dtype=np.int64)
+        sl = slice(int(self.bin_ptr[lo_b]), int(self.bin_ptr[hi_b + 1]))
+        keep = np.abs(self.seg_len[sl] - d) <= tolerance_m
+        a, c = self.seg_i[sl][keep], self.seg_j[sl][keep]
+        cand = np.concatenate([np.stack([a, c], 1), np.stack([c, a], 1)])
+        if use_dir and cand.shape[0]:
+            cand = cand[dir_ok(1, S[cand[:, 1]] - S[cand[:, 0]])]
+        cand = self._cap(cand, cap, rng)
+        # Further levels: AND of the banded connectivity rows of the matched vertices.
+        for k in range(2, n_poly):
+            if cand.shape[0] == 0:
+                break
+            ok = np.abs(self.dist[cand[:, 0]] - dq[0, k]) <= tolerance_m
+            for v in range(1, k):
+                ok &= np.abs(self.dist[cand[:, v]] - dq[v, k]) <= tolerance_m
+            owner, new = np.nonzero(ok)
+            if use_dir and new.shape[0]:
+                keep_dir = dir_ok(k, S[new] - S[cand[owner, 0]])
+                owner, new = owner[keep_dir], new[keep_dir]
+            cand = self._cap(np.concatenate([cand[owner], new[:, None]], axis=1), cap, rng)
+        if cand.shape[0] == 0 or cand.shape[1] < n_poly:
+            return np.empty((0, n_poly), dtype=np.int64)
+        return cand
+
+    @staticmethod
+    def _cap(cand: IntArray, cap: int, rng: np.random.Generator) -> IntArray:
+        if cand.shape[0] <= cap:
+            return cand
+        return cand[np.sort(rng.choice(cand.shape[0], size=cap, replace=False))]
+
+    def _fit_grid(self, threshold_m: float) -> _FitGrid:
+        assert self.target is not None
+        dense = prepare_model(self.target, _DENSE_POINTS)
+        key = ("pah_fit_grid", round(threshold_m, 6), self.model_hash)
+        return self.target.cached(key, lambda: _FitGrid.build(dense.points, threshold_m))
+
+    # -- runtime: localization ---------------------------------------------------------------------
+    def localize(
+        self,
+        points: npt.ArrayLike,
+        rng: np.random.Generator,
+        constraint: PoseConstraint | None = None,
+        sigma: float | npt.ArrayLike | None = None,
+        max_time_s: float | None = None,
+    ) -> RegistrationResult:
+        """Find the target pose in a scan without an initial guess (seed 000 section 3.1.2).
+
+        For each polygon: match it, fit a pose per match, drop mirror images, back-facing and
+        (constrained) out-of-corridor poses, precheck the survivors on a decimated scan, check the
+        best few on the whole scan, and polish the distinct best ones by a short ICP scored on the
+        whole scan (so that near-symmetric alternatives are compared, not the first one taken).
+        It stops when a hypothesis scores ``accept_fitness`` or the polygon or time budget is
+        spent; the best hypothesis is then refined by a full ICP.
+
+        Args:
+            points: (N, 3) scan points [m], sensor frame (non-finite rows are ignored).
+            rng: the only source of randomness (polygon seeds, decimation, candidate caps).
+            constraint: approach corridor; candidates outside it are dropped before any fit check.
+            sigma: range noise 1-sigma [m], a float or (N,) per point; default 0.01 m.
+            max_time_s: wall-clock budget [s]; when it runs out the best hypothesis so far is
+                refined and returned.
+
+        Returns:
+            The ICP-refined :class:`RegistrationResult` of the best hypothesis; ``iterations`` is
+            the ICP's. ``reason`` is empty when its score reached ``accept_fitness`` (inside the
+            corridor, if any), otherwise it says why not. A scan too small or degenerate to
+            localize, or one no polygon matched, gives ``RegistrationResult.failure``.
+
+        Raises:
+            ValueError: points not (N, 3), ``rng`` not a Generator, a bad ``constraint``,
+                ``sigma`` or ``max_time_s``, or a database without a target.
+        """
+        t_start = time.perf_counter()
+        P_all = validate_points(points, "points")
+        if not isinstance(rng, np.random.Generator):
+            raise ValueError(f"rng={rng!r}; expected a numpy.random.Generator")
+        if constraint is not None and not isinstance(constraint, PoseConstraint):
+            raise ValueError(f"constraint is a {type(constraint).__name__}; expected PoseConstraint")
+        if max_time_s is not None and not (
+            isinstance(max_time_s, (int, float)) and math.isfinite(max_time_s) and max_time_s > 0
+        ):
+            raise ValueError(f"max_time_s={max_time_s!r}; expected a finite budget > 0 [s] or None")
+        if self.target is None:
+            raise ValueError(
+                f"PAH database of {self.target_name!r} has no target; pass target= to load() or "
+                "call attach(target)"
+            )
+        sig_all = _sigma_array(sigma, P_all.shape[0])
+        ok = np.all(np.isfinite(P_all), axis=1) & np.isfinite(sig_all)
+        P = np.ascontiguousarray(P_all[ok])
+        sig = sig_all[ok]
+        n = P.shape[0]
+        cfg = self.config
+        n_poly = int(cfg.polygon_size)
+        min_pts = max(2 * n_poly, 10)
+
+        def elapsed() -> float:
+            return time.perf_counter() - t_start
+
+        if n < min_pts:
+            return RegistrationResult.failure(
+                f"{n} finite scan points (of {P_all.shape[0]}); PAH needs >= {min_pts}",
+                n_points=n, time_s=elapsed(),
+            )
+        rng_norm = np.linalg.norm(P, axis=1)
+        if float(np.ptp(P, axis=0).max()) < 1e-6 or np.any(rng_norm < 1e-9):
+            return RegistrationResult.failure(
+                "scan points coincide or sit on the sensor origin; PAH needs a spread-out cloud",
+                n_points=n, time_s=elapsed(),
+            )
+        sig_med = float(np.median(sig))
+        # A scan vertex lies up to `coverage` from its model point, plus range noise on each end.
+        tol = max(float(cfg.length_tolerance_m), self.coverage_m) + 2.0 * sig_med
+        fit_thr = max(float(cfg.fit_inlier_m), 3.0 * sig_med)
+        grid = self._fit_grid(max(float(cfg.fit_inlier_m), self.coverage_m))
+        mc = prepare_model(self.target, _DENSE_POINTS)
+        # Per-point inlier distance of the hypothesis score: noise plus model sampling.
+        score_thr = 3.0 * sig + mc.spacing
+        pre = P[rng.choice(n, size=min(n, int(cfg.precheck_points)), replace=False)]
+        pre_a = pre[: max(10, int(cfg.precheck_points) // 4)]
+        rays = P / rng_norm[:, None]
+        max_extent = self.max_length_m + 2.0 * tol
+        screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
+
+        hyps: list[_Hypothesis] = []
+        best: _Hypothesis | None = None
+        n_cands = n_admitted = polygons = 0
+        stop = ""
+        for _ in range(int(cfg.max_polygons)):
+            if max_time_s is not None and elapsed() > max_time_s:
+                stop = f"time budget {max_time_s:.3g} s spent"
+                break
+            polygons += 1
+            poly = _pick_polygon(P, n_poly, max_extent, rng)
+            if poly is None:
+                continue
+            Q = P[poly]
+            cand = self.match_polygon(
+                Q, tol, rng,
+                R_nominal=None if constraint is None else constraint.R_sensor_target_nominal,
+                direction_tol_rad=None if constraint is None else constraint.attitude_tol_rad,
+            )
+            n_cands += cand.shape[0]
+            if cand.shape[0] == 0:
+                continue
+            # Cheap poses from the first triangle for pruning; SVD only for the survivors.
+            R, t = _triangle_poses(self.points[cand], Q)
+            keep = self._plausible(R, t, cand, Q, rays[poly], tol, constraint)
+            cand, R, t = cand[keep], R[keep], t[keep]
+            if cand.shape[0] == 0:
+                continue
+            score_a = grid.inside(_to_model(pre_a, R, t)).mean(axis=1)
+            top = np.argsort(-score_a, kind="stable")[:_PRECHECK_KEEP]
+            cand = cand[top]
+            R, t = _kabsch_batch(self.points[cand], Q)
+            resid = Q[None] - (np.einsum("kij,knj->kni", R, self.points[cand]) + t[:, None, :])
+            keep = np.sqrt(np.mean(np.sum(resid**2, axis=2), axis=1)) <= tol
+            keep &= self._plausible(R, t, cand, Q, rays[poly], tol, constraint)
+            R, t = R[keep], t[keep]
+            n_admitted += R.shape[0]
+            if R.shape[0] == 0:
+                continue
+            score_b = grid.inside(_to_model(pre, R, t)).mean(axis=1)
+            top = np.argsort(-score_b, kind="stable")[:_FULL_CHECK]
+            # Full O(n) check of the best few on the dense model's KD-tree.
+            dist, _ = mc.kdtree.query(_to_model(P, R[top], t[top]).reshape(-1, 3), k=1,
+                                      distance_upper_bound=fit_thr)
+            fit = np.isfinite(dist).reshape(top.size, n).mean(axis=1)
+            order = np.argsort(-fit, kind="stable")
+            for j in order[:_SCREEN_PER_POLYGON]:
+                if fit[j] < 0.5 * fit[order[0]] or (best is not None and fit[j] < 0.5 * best.fitness):
+                    break
+                T0 = np.eye(4)
+                T0[:3, :3], T0[:3, 3] = R[top[j]], t[top[j]]
+                if any(_same_pose(T0, h.T) for h in hyps):
+                    continue
+                res = icp(P, mc, T0, sigma=sig, config=screen_cfg)
+                h = _Hypothesis(res.T_sensor_target,
+                                *self._score(P, res.T_sensor_target, sig, score_thr, mc))
+                hyps.append(h)
+                if constraint is not None and not constraint.admits(h.T):
+                    continue
+                if best is None or h.likelihood > best.likelihood:
+                    best = h
+            if best is not None and best.fitness >= cfg.accept_fitness:
+                break
+        if best is None:
+            why = stop or (
+                f"no admissible candidate in {polygons} polygons ({n_cands} matches, "
+                f"{n_admitted} passed the pose checks)"
+            )
+            return RegistrationResult.failure(why, n_points=n, time_s=elapsed(),
+                                              iterations=polygons)
+        res = icp(P, mc, best.T, sigma=sig)
+        if not res.converged:
+            # Slow convergence along a weakly observed direction: one more pass from where it got.
+            res = icp(P, mc, res.T_sensor_target, sigma=sig)
+        notes = []
+        final_score, _ = self._score(P, res.T_sensor_target, sig, score_thr, mc)
+        if final_score < cfg.accept_fitness:
+            notes.append(f"fit score {final_score:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
+        if constraint is not None and not constraint.admits(res.T_sensor_target):
+            notes.append("refined pose outside the corridor")
+        if notes:
+            res.reason = "; ".join([*notes, *(s for s in (stop, res.reason) if s)])
+        elif not res.converged:
+            res.reason = res.reason or "ICP refinement did not converge"
+        res.time_s = elapsed()
+        return res
+
+    def _plausible(
+        self,
+        R: FloatArray,
+        t: FloatArray,
+        cand: IntArray,
+        Q: FloatArray,
+        rays: FloatArray,
+        tol: float,
+        constraint: PoseConstraint | None,
+    ) -> npt.NDArray[np.bool_]:
+        """(K,) poses whose matched model normals face the sensor and that lie in the corridor."""
+        nrm_s = np.einsum("kij,knj->kni", R, self.normals[cand])
+        keep = np.all(np.einsum("kni,ni->kn", nrm_s, rays) < _VISIBLE_COS, axis=1)
+        if constraint is not None:
+            slack = math.atan(2.0 * tol / max(_diameter(Q), 1e-9))
+            keep &= constraint.attitude_ok(R, slack_rad=slack)
+            keep &= constraint.position_ok(t, slack_m=tol)
+        return keep
+
+    @staticmethod
+    def _score(
+        P: FloatArray, T: FloatArray, sig: FloatArray, thr: FloatArray, mc: ModelCloud
+    ) -> tuple[float, float]:
+        """How well a pose fits the whole scan.
+
+        Returns:
+            The inlier fraction (points within ``thr`` (N,) [m] of a model sample) and the mean
+            Gaussian likelihood ``exp(-r^2 / 2 sigma^2)`` of the point-to-plane residuals ``r``
+            (0 for outliers). The first decides acceptance; the second ranks hypotheses: it sees
+            small features (a 5 cm star tracker) that a noise-wide inlier gate cannot.
+        """
+        X = (P - T[:3, 3]) @ T[:3, :3]
+        d, j = mc.kdtree.query(X, k=1, distance_upper_bound=float(thr.max()))
+        inl = d <= thr
+        r = np.einsum("ij,ij->i", X[inl] - mc.points[j[inl]], mc.normals[j[inl]])
+        like = np.exp(-0.5 * (r / sig[inl]) ** 2).sum() / P.shape[0]
+        return float(np.mean(inl)), float(like)
+
+
+# Candidates kept after the first (quarter-size) precheck, and sent on to the full check.
+_PRECHECK_KEEP = 256
+_FULL_CHECK = 16
+# Distinct hypotheses per polygon polished by a short ICP, and that ICP's iterations.
+_SCREEN_PER_POLYGON = 3
+_SCREEN_ICP_ITERATIONS = 12
+
+
+def _to_model(P: FloatArray, R: FloatArray, t: FloatArray) -> FloatArray:
+    """Scan points (m, 3) into the model frame under K poses: (K, m, 3) = R_k^T (p - t_k)."""
+    return np.einsum("kmi,kij->kmj", P[None] - t[:, None, :], R)
+
+
+def _triangle_poses(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Poses from orthonormal frames on the first three vertices (cheap, for pruning).
+
+    Args:
+        S: (K, N, 3) model polygons [m]; Q: (N, 3) scan polygon [m].
+
+    Returns:
+        R (K, 3, 3), t (K, 3) with ``Q ~= R S_k + t`` (centroids aligned).
+    """
+
+    def frames(a: FloatArray, b: FloatArray, c: FloatArray) -> FloatArray:
+        x = b - a
+        x = x / np.linalg.norm(x, axis=-1, keepdims=True).clip(1e-12)
+        z = np.cross(b - a, c - a)
+        z = z / np.linalg.norm(z, axis=-1, keepdims=True).clip(1e-12)
+        y = np.cross(z, x)
+        return np.stack([x, y, z], axis=-1)
+
+    Fs = frames(S[:, 0], S[:, 1], S[:, 2])
+    Fq = frames(Q[0], Q[1], Q[2])
+    R = np.einsum("ij,kwj->kiw", Fq, Fs)
+    t = Q.mean(axis=0) - np.einsum("kij,kj->ki", R, S.mean(axis=1))
+    return R, t
+
+
+def _same_pose(A: FloatArray, B: FloatArray, tol_m: float = 0.05, tol_rad: float = 0.1) -> bool:
+    if np.linalg.norm(A[:3, 3] - B[:3, 3]) > tol_m:
+        return False
+    c = 0.5 * (float(np.sum(A[:3, :3] * B[:3, :3])) - 1.0)
+    return c >= math.cos(tol_rad)
+
+
+def _diameter(Q: FloatArray) -> float:
+    """Largest pairwise distance of a small point set (N, 3) [m]."""
+    return float(np.linalg.norm(Q[:, None, :] - Q[None, :, :], axis=-1).max())
+
+
+def _pick_polygon(
+    P: FloatArray, n_poly: int, max_extent: float, rng: np.random.Generator
+) -> IntArray | None:
+    """A large-area polygon of the scan: greedy farthest points from a random seed point.
+
+    Each next vertex is drawn at random among the points whose distance to the chosen ones is at
+    least 80 % of the largest such distance (so repeated draws give different polygons), and no
+    farther than ``max_extent`` from any chosen vertex (the longest model segment). The longest
+    edge is put first: it is looked up in the length table, where long lengths are rare.
+    """
+    n = P.shape[0]
+    chosen = [int(rng.integers(n))]
+    dmin = np.linalg.norm(P - P[chosen[0]], axis=1)
+    dmax = dmin.copy()
+    for _ in range(1, n_poly):
+        score = np.where(dmax <= max_extent, dmin, -1.0)
+        if not score.max() > 0:
+            return None
+        pool = np.flatnonzero(score >= 0.8 * score.max())
+        nxt = int(pool[rng.integers(pool.size)])
+        chosen.append(nxt)
+        dn = np.linalg.norm(P - P[nxt], axis=1)
+        dmin = np.minimum(dmin, dn)
+        dmax = np.maximum(dmax, dn)
+    idx = np.asarray(chosen, dtype=np.int64)
+    d = np.linalg.norm(P[idx][:, None] - P[idx][None], axis=-1)
+    a, b = np.unravel_index(int(np.argmax(d)), d.shape)
+    rest = [i for i in range(n_poly) if i not in (a, b)]
+    return idx[[a, b, *rest]]
+
+
+def _sigma_array(sigma: float | npt.ArrayLike | None, n: int) -> FloatArray:
+    if sigma is None:
+        return np.full(n, 0.01)
+    try:
+        s = np.asarray(sigma, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"sigma={sigma!r}; expected a float or (N,) array [m]") from None
+    if s.ndim == 0:
+        if not (np.isfinite(s) and s > 0):
+            raise ValueError(f"sigma={float(s)}; expected a finite range noise > 0 [m]")
+        return np.full(n, float(s))
+    s = s.reshape(-1)
+    if s.shape[0] != n:
+        raise ValueError(f"sigma has {s.shape[0]} values for {n} points; expected a float or (N,)")
+    if np.any(s[np.isfinite(s)] <= 0):
+        raise ValueError("sigma has values <= 0; expected per-point range noise > 0 [m]")
+    return s
+
+
+def _check_layout(path: Path, a: dict[str, np.ndarray]) -> None:
+    """Consistency of a loaded database's arrays; ValueError naming the file otherwise."""
+    pts = a["points"]
+    m = pts.shape[0] if pts.ndim == 2 else -1
+    problems = []
+    if pts.shape != (m, 3) or m < 3 or a["normals"].shape != (m, 3):
+        problems.append(f"points {pts.shape} / normals {a['normals'].shape}")
+    n_seg = a["seg_len"].shape[0] if a["seg_len"].ndim == 1 else -1
+    if not (a["seg_i"].shape == a["seg_j"].shape == (n_seg,)) or n_seg != m * (m - 1) // 2:
+        problems.append(f"{n_seg} segments for {m} points")
+    if a["dist"].shape != (m, m):
+        problems.append(f"connectivity table {a['dist'].shape} for {m} points")
+    if a["bin_ptr"].ndim != 1 or a["bin_ptr"].size < 2 or a["bin_ptr"][-1] != n_seg:
+        problems.append("length-table offsets")
+    if not problems:
+        idx_ok = all(a[k].size == 0 or (a[k].min() >= 0 and a[k].max() < m) for k in ("seg_i", "seg_j"))
+        if not idx_ok:
+            problems.append("point indices out of range")
+        elif not all(np.all(np.isfinite(a[k])) for k in ("points", "normals", "seg_len", "dist")):
+            problems.append("non-finite values")
+        elif np.any(np.diff(a["seg_len"]) < 0) or not np.allclose(
+            a["seg_len"], a["dist"][a["seg_i"], a["seg_j"]]
+        ):
+            problems.append("length table inconsistent with the connectivity table")
+    if problems:
+        raise ValueError(f"PAH database {path} is corrupt: {', '.join(problems)}")
+    for k in ("seg_i", "seg_j", "bin_ptr"):
+        a[k] = a[k].astype(np.int64, copy=False)

@@ -1,0 +1,61 @@
+"""Environment throughput: steps/s with ``perception="truth"`` and ``"tridar"``, single and vector.
+
+Uses ``gymnasium.utils.performance.benchmark_step`` (random actions, auto-reset) on each id; the
+peer row is the same env with truth perception, so the ratio shows what the TriDAR pipeline costs.
+Goals: >= 20,000 steps/s with truth, >= 200 steps/s with the full pipeline on one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gymnasium as gym
+import numpy as np
+from gymnasium.utils.performance import benchmark_step, benchmark_vector_step
+
+import tridar_env  # noqa: F401  (registers the ids)
+from tridar_env.benchmarks.timing import format_table
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=3.0, help="measuring time per row [s]")
+    p.add_argument("--ids", nargs="*", default=list(tridar_env.ENV_IDS), help="env ids")
+    p.add_argument("--vector", type=int, default=2, help="envs in the vector rows (0: skip)")
+    p.add_argument("--repeats", type=int, default=3, help="measurements per row (median, p90)")
+
+
+def _measure(fn, repeats: int) -> tuple[float, float]:
+    rates = [fn() for _ in range(repeats)]
+    # Steps/s: the median and the 10th percentile (the slow tail, "p90" of the step time).
+    return float(np.median(rates)), float(np.percentile(rates, 10))
+
+
+def run(args: argparse.Namespace) -> int:
+    rows = []
+    secs = max(int(round(args.seconds)), 1)
+    for env_id in args.ids:
+        base = None
+        for perception in ("truth", "tridar"):
+            env = gym.make(env_id, perception=perception)
+            med, slow = _measure(lambda env=env: benchmark_step(env, target_duration=secs, seed=0), args.repeats)
+            base = med if perception == "truth" else base
+            rows.append({
+                "id": env_id, "perception": perception, "envs": 1, "steps_per_s_median": med,
+                "steps_per_s_p10": slow, "ratio_to_truth": med / base if base else 1.0,
+            })
+            env.close()
+            if args.vector > 1:
+                venv = gym.make_vec(env_id, num_envs=args.vector, vectorization_mode="async",
+                                    vector_kwargs={"context": "spawn"}, perception=perception)
+                med_v, slow_v = _measure(
+                    lambda venv=venv: args.vector * benchmark_vector_step(venv, target_duration=secs, seed=0),
+                    args.repeats,
+                )
+                rows.append({
+                    "id": env_id, "perception": perception, "envs": args.vector,
+                    "steps_per_s_median": med_v, "steps_per_s_p10": slow_v,
+                    "ratio_to_truth": med_v / base if base else 1.0,
+                })
+                venv.close()
+    print(format_table(rows))
+    print("goals: >= 20,000 steps/s truth, >= 200 steps/s tridar (one core)")
+    return 0

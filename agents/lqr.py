@@ -19,9 +19,9 @@ attitude) the model falls back to the double integrator ``Phi = [[I, dt I], [0, 
 
 Law. ``K`` from ``scipy.linalg.solve_discrete_are``; ``u = u_ff - K (x - x_aim)`` with the
 feed-forward ``u_ff = B^+ (x_aim[k+1] - A x_aim[k])`` that makes the aim trajectory a solution of
-the model, then per-axis saturation at ``max_thrust / mass``. The aim point lies on the port axis
-at distance ``z_aim`` and slides in at the glideslope rate ``clip(slope * z_aim, v_final, v_max)``;
-it continues through the port plane so that contact happens at ``v_final`` (inside the capture
+the model, then saturation at ``max_thrust / mass`` that scales the whole vector (keeping its
+direction). The aim point lies on the port axis at distance ``z_aim`` and slides in at the
+glideslope rate ``clip(slope * z_aim, v_final, v_max)``; it continues through the port plane so that contact happens at ``v_final`` (inside the capture
 envelope's 0.05-0.10 m/s). It pauses (a hold point) while the chaser lags it by more than
 ``max_lag_m`` or sits outside the lateral cone, except inside ``commit_range_m`` where a stop would
 turn contact into a collision.
@@ -124,6 +124,13 @@ def loss_of_track_accel(obs: npt.NDArray[np.floating], gain: float) -> FloatArra
     return np.zeros(3)
 
 
+def saturate(u: npt.NDArray[np.floating]) -> FloatArray:
+    """Scale a normalised command so that no axis exceeds 1, keeping its direction."""
+    u = np.asarray(u, dtype=np.float64)
+    m = float(np.max(np.abs(u))) if u.size else 0.0
+    return u / m if m > 1.0 else u
+
+
 class LQRController:
     """CW-model discrete LQR toward a moving aim point on the port axis (3-DOF thrust).
 
@@ -218,7 +225,7 @@ class LQRController:
         if self.thrust_frame == "lvlh":
             assert self.R is not None
             a = self.R @ a
-        thrust = np.clip(a * self._mass(obs) / self.max_thrust, -1.0, 1.0)
+        thrust = saturate(a * self._mass(obs) / self.max_thrust)
         if self.six_dof:
             thrust = np.concatenate([thrust, np.zeros(3)])  # no attitude control: use sync
         return thrust.astype(np.float32)

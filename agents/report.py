@@ -270,8 +270,8 @@ def format_summary(s: dict[str, Any], out_dir: Path | None = None) -> str:
     """The one-screen text summary of :func:`summary_dict`."""
     lines = [
         f"{s['env']}  controller={s['controller']}  perception={s['perception']}  seed={s['seed']}",
-        f"result       {s['outcome'].upper()} after {s['sim_time_s']:.1f} s simulated "
-        f"({s['steps']} steps, {s['wall_time_s']:.1f} s wall)",
+        (f"result       {s['outcome'].upper()} after {s['sim_time_s']:.1f} s simulated "
+         f"({s['steps']} steps, {s['wall_time_s']:.1f} s wall)"),
         f"delta-v      {s['delta_v_m_s']:.3f} m/s  (propellant {s['propellant_used_kg']:.3f} kg)",
         "contact      " + ("at capture" if s["outcome"] in ("docked", "collision")
                            else "at the end of the episode (no contact)"),
@@ -279,11 +279,10 @@ def format_summary(s: dict[str, Any], out_dir: Path | None = None) -> str:
     for c in s["envelope"]:
         lines.append(f"  {c['name']:<15} {c['value']:9.4f} {c['unit']:<6} envelope "
                      f"{_fmt_limit(c):<13} {'ok' if c['ok'] else 'OUT'}")
-    segs = [f"{d['mode']} {d['start_s']:.1f}-{d['end_s']:.1f} s" for d in s["mode_timeline"]]
-    if len(segs) > 6:  # keep it on one screen: first and last three segments
-        segs = segs[:3] + [f"... {len(segs) - 6} more ..."] + segs[-3:]
-    timeline = ", ".join(segs)
-    lines.append(f"modes        {timeline}  ({s['acquisitions']} acquisition(s))")
+    segs = [f"{d['mode']} {d['start_s']:.1f}-{d['end_s']:.1f}" for d in s["mode_timeline"]]
+    if len(segs) > 4:  # keep it on one line: the first segment and the last two
+        segs = segs[:1] + [f"...{len(segs) - 3} more..."] + segs[-2:]
+    lines.append(f"modes [s]    {', '.join(segs)}; {s['acquisitions']} acquisition(s)")
     if np.isfinite(s["max_pos_err_m"]):
         lines.append(
             f"estimation   max error {100 * s['max_pos_err_m']:.2f} cm / {s['max_att_err_deg']:.2f} deg "
@@ -346,22 +345,28 @@ def _figure(w: float, h: float) -> Any:
 
 
 def plot_trajectory(rec: EpisodeRecord, path: Path) -> Path:
-    """Hill-frame path (V-bar horizontal, R-bar up) and the approach in the docking frame."""
+    """Hill-frame path (V-bar horizontal, R-bar up) and the approach along the port axis."""
     fig = _figure(11, 4.5)
     ax1, ax2 = fig.subplots(1, 2)
-    x, y = rec.column("x_lvlh"), rec.column("y_lvlh")
-    xe, ye = rec.column("x_lvlh_est"), rec.column("y_lvlh_est")
-    ax1.plot(y, x, "k-", lw=1.2, label="truth")
-    ax1.plot(ye, xe, ".", color="tab:red", ms=1.5, label="TriDAR estimate")
-    ax1.plot(y[:1], x[:1], "o", color="tab:blue", label="start")
-    ax1.plot(y[-1:], x[-1:], "s", color="tab:blue", label="end")
+    names = ("x", "y", "z")
+    labels = {"x": "R-bar x [m]", "y": "V-bar y [m]", "z": "orbit normal z [m]"}
+    true = np.column_stack([rec.column(f"{a}_lvlh") for a in names]).astype(float)
+    est = np.column_stack([rec.column(f"{a}_lvlh_est") for a in names]).astype(float)
+    # V-bar horizontal and R-bar up, unless the path runs mostly out of that plane
+    span = np.ptp(true, axis=0)
+    h, v = (1, 0) if span[2] <= max(span[0], span[1]) else ((1, 2) if span[1] >= span[0] else (0, 2))
+    ax1.plot(true[:, h], true[:, v], "k-", lw=1.2, label="truth")
+    ax1.plot(est[:, h], est[:, v], ".", color="tab:red", ms=1.5, label="TriDAR estimate")
+    ax1.plot(true[:1, h], true[:1, v], "o", color="tab:blue", label="start")
+    ax1.plot(true[-1:, h], true[-1:, v], "s", color="tab:blue", label="end")
     ax1.plot([0], [0], "+", color="0.4", ms=10, label="target CoM")
-    ax1.set(xlabel="V-bar y [m]", ylabel="R-bar x [m]", title="Chaser in the target's Hill frame")
+    ax1.set(xlabel=labels[names[h]], ylabel=labels[names[v]], title="Chaser in the target's Hill frame")
     ax1.set_aspect("equal", adjustable="datalim")
     ax1.legend(fontsize=8)
-    z = rec.column("axial_distance").astype(float)
-    lat = rec.column("lateral_offset").astype(float)
+    # like with like: the port in the docking frame, as simulated and as the controller saw it
+    pt = np.column_stack([rec.column(f"port_{a}_true") for a in "xyz"]).astype(float)
     pe = np.column_stack([rec.column(f"port_{a}_est") for a in "xyz"]).astype(float)
+    z, lat = pt[:, 2], np.hypot(pt[:, 0], pt[:, 1])
     ax2.plot(pe[:, 2], np.hypot(pe[:, 0], pe[:, 1]), "-", color="tab:red", lw=0.8, alpha=0.6,
              label="TriDAR estimate")
     ax2.plot(z, lat, "k-", lw=1.2, label="truth")
@@ -373,8 +378,8 @@ def plot_trajectory(rec: EpisodeRecord, path: Path) -> Path:
         zz = np.linspace(0.0, zmax, 200)
         ax2.plot(zz, zz * np.tan(np.radians(half)), "--", color="tab:green", lw=0.8, label="corridor")
     ax2.axhline(lim, color="tab:orange", lw=0.8, label="capture lateral limit")
-    ax2.set(xlabel="axial distance to the port [m]", ylabel="lateral offset [m]",
-            title="Approach along the port axis")
+    ax2.set(xlabel="port ahead along the docking axis [m]", ylabel="port off the docking axis [m]",
+            title="The port seen from the docking frame")
     ax2.set_xscale("symlog", linthresh=1.0)
     ax2.set_xlim(min(float(np.nanmin(z)), 0.0), zmax * 1.1)
     ax2.set_ylim(0.0, top)

@@ -12,11 +12,16 @@ Phases (:attr:`SyncController.phase`):
     Far from the target the port axis sweeps metres per second (a 10 deg nutation at 60 m), so the
     chaser does not follow it: it points its docking axis at the port (rate damped against the
     line-of-sight rate, roll rate matched to the port's spin) and closes along the line of sight
-    on a glideslope down to ``sync_range_m``.
+    on a glideslope down to ``sync_range_m``, nulling the transverse velocity. This phase works
+    on the *inertial* relative velocity of the port seen from the chaser's centre of mass,
+    ``p_dot + w x (p + d)``, so no rotating-frame term appears.
 ``sync``
     Attitude: match the port. The error ``e = rotvec(R_dock_port R_aligned)`` (``R_aligned =
     diag(1, -1, -1)``) and ``w_rel`` drive a rate-limited PD, with the port's inertial angular
-    acceleration (finite differences of ``w + w_rel``, low-passed) as feed-forward.
+    acceleration (finite differences of ``w + w_rel``, low-passed) as feed-forward. ``w_rel``
+    goes through a predictor-corrector that knows the torque just applied
+    (``d/dt w_rel = alpha_port - alpha_chaser - w x w_rel``), which averages estimate noise
+    without lagging the control.
     Translation: hold the dock on the *rotating* port axis at ``s`` ahead of the port, the point
     ``h = p + s u`` with ``u = R_dock_port e_z`` (``h = 0`` there). In the rotating docking frame
     ``p'' = -a - alpha x (p + d) - w x (w x (p + d)) - 2 w x p_dot + (port's own acceleration)``:
@@ -24,8 +29,8 @@ Phases (:attr:`SyncController.phase`):
     ``alpha`` from the torque just commanded) are compensated, the port's acceleration about the
     target's centre of mass (unknown: ``|w|^2`` times the port's lever arm) is left to the PD.
 ``close``
-    Once the attitude error, the relative rate and the hold error have stayed inside the matching
-    thresholds for ``dwell_s``, ``s`` slides to zero along the port axis on a glideslope ending at
+    Once the attitude error, the relative rate and the hold error across the axis (all low-passed
+    over ``metric_filter_s``) have stayed inside the matching thresholds for ``dwell_s``, ``s`` slides to zero along the port axis on a glideslope ending at
     ``v_final`` (inside the capture envelope); it freezes (hold point) while any of them leaves a
     looser band, and the dwell restarts.
 ``safe``
@@ -44,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from agents.lqr import loss_of_track_accel, saturate
 from perception.config import MissionConfig
 from perception.geometry import quat_to_matrix
 from tridar_env.env import observation_slices
@@ -79,7 +85,7 @@ class SyncGains:
     # attitude: w_des = sat(lam * e, w_max); alpha = kd (w_rel + w_des) (+ feed-forward in sync)
     point_lam: float = 0.5  # [1/s] approach: pointing the docking axis at the port
     point_kd: float = 1.2  # [1/s]
-    att_lam: float = 0.2  # [1/s] sync/close: lower bandwidth, the pose estimate is noisier
+    att_lam: float = 0.1  # [1/s] sync/close: lower bandwidth, the pose estimate is noisier
     att_kd: float = 0.6  # [1/s]  than the line of sight
     w_max: float = 0.1  # [rad/s]
     alpha_filter_s: float = 5.0  # [s] low-pass of the port's angular acceleration (feed-forward)
@@ -125,6 +131,7 @@ class SyncController:
         # The chaser is modelled as a uniform cube of the hull's size (its own design data).
         self.inertia = (ch.dry_mass_kg + ch.propellant_kg) * (2.0 * ch.hull_radius_m) ** 2 / 6.0
         self.d = np.array(ch.dock_position_m, dtype=np.float64)  # dock origin, body frame [m]
+        self.alpha_max = self.max_torque / self.inertia  # [rad/s^2] per axis
         self.reset()
 
     def reset(self) -> None:
@@ -142,15 +149,6 @@ class SyncController:
     # ------------------------------------------------------------------ helpers
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
-
-    def _los_brake(self, obs: npt.NDArray[np.floating]) -> FloatArray:
-        valid = obs[_S["valid"]]
-        rr = float(obs[_S["range_rate"]][0])
-        if valid[0] > 0.5 and valid[2] > 0.5 and rr < -0.01:
-            az, el = (float(x) for x in obs[_S["bearing"]])
-            los = np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
-            return self.g.brake_gain * rr * los  # accelerate away along the line of sight
-        return np.zeros(3)
 
     def _port_alpha(self, w: FloatArray, w_rel: FloatArray) -> FloatArray:
         """Low-passed inertial angular acceleration of the port, body frame [rad/s^2]."""
@@ -190,7 +188,7 @@ class SyncController:
             self._w_t_prev = None
             self._metrics = None
             self._w_rel_f = None
-            return self._los_brake(obs), np.zeros(3)
+            return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
 
         p = obs[_S["port_position_dock"]].astype(np.float64)
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
@@ -216,7 +214,8 @@ class SyncController:
         # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration)
         e = _rotvec(R_dp @ R_ALIGNED)
         w_des = _sat(g.att_lam * e, g.w_max)
-        alpha = g.att_kd * (w_rel + w_des) + alpha_t
+        # what the torque limit lets through (the translation compensates the actual alpha)
+        alpha = saturate((g.att_kd * (w_rel + w_des) + alpha_t) / self.alpha_max) * self.alpha_max
         # ---- translation: hold the point s ahead of the port on its axis
         u = R_dp @ np.array([0.0, 0.0, 1.0])
         u_dot = np.cross(w_rel, u)
@@ -256,8 +255,10 @@ class SyncController:
         # hold the line-of-sight's inertial rate, and match the port's spin about it
         w_los = np.cross(r, v) / max(float(r @ r), 1e-6)
         w_ref = (w_los - w) - ((w_los - w) @ los) * los + (w_rel @ los) * los
-        alpha = g.point_kd * (w_ref + _sat(g.point_lam * e, g.w_max))
-        v_des = float(np.clip(g.approach_slope * (dist - g.sync_range_m), g.approach_v_min, g.approach_v_max))
+        alpha = saturate(g.point_kd * (w_ref + _sat(g.point_lam * e, g.w_max)) / self.alpha_max)
+        alpha = alpha * self.alpha_max
+        v_des = float(np.clip(g.approach_slope * (dist - g.sync_range_m),
+                              g.approach_v_min, g.approach_v_max))
         v_los = float(v @ los)  # negative when closing
         v_perp = v - v_los * los
         a = g.kv * (v_los + v_des) * los + g.kd * v_perp
@@ -280,7 +281,7 @@ class SyncController:
         worst = max(errs)
         if self.phase == "sync":
             self.dwell = self.dwell + self.dt if worst <= 1.0 else 0.0
-            if self.dwell >= g.dwell_s:
+            if self.dwell >= g.dwell_s - 1e-9:
                 self.phase = "close"
         elif self.phase == "close" and worst > g.loose:
             self.phase = "sync"  # freeze the hold point where it is and dwell again
@@ -292,7 +293,7 @@ class SyncController:
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         # isotropic chaser inertia: w x (I w) vanishes, kept for clarity of the model
         torque = self.inertia * alpha + np.cross(w, self.inertia * w)
-        out = np.clip(np.concatenate([thrust, torque / self.max_torque]), -1.0, 1.0)
+        out = np.concatenate([saturate(thrust), saturate(torque / self.max_torque)])
         self._alpha_applied = out[3:] * self.max_torque / self.inertia
         return out.astype(np.float32)
 

@@ -260,6 +260,11 @@ class ICPConfig(StrictModel):
     translation_tol_m: PositiveFloat = 1e-5
     rotation_tol_rad: PositiveFloat = 1e-6
     residual_tol: NonNegFloat = 1e-7
+    step_tol_sigma: NonNegFloat = Field(
+        0.05,
+        description="fine phase: converged once a step is below this many sigmas of the frame's "
+        "own information (Mahalanobis length; 0 disables)",
+    )
     time_budget_s: PositiveFloat | None = None
     min_points: Annotated[int, Field(ge=6)] = 10
     kernel_scale: PositiveFloat = Field(
@@ -332,13 +337,19 @@ class PipelineConfig(StrictModel):
     icp: ICPConfig = ICPConfig()
     pah: PAHConfig = PAHConfig()
     process_noise_accel: PositiveFloat = Field(
-        0.02, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
+        0.05, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
     )
-    process_noise_angacc: PositiveFloat = Field(0.002, description="[rad/s^2/sqrt(Hz)]")
+    process_noise_angacc: PositiveFloat = Field(0.005, description="[rad/s^2/sqrt(Hz)]")
     measurement_floor_m: NonNegFloat = Field(
-        0.005, description="added to the registration's position sigma (model error, TOF bias)"
+        0.01, description="added to the registration's position sigma (model error, TOF bias)"
     )
-    measurement_floor_deg: NonNegFloat = Field(0.1, description="added attitude sigma [deg]")
+    measurement_floor_deg: NonNegFloat = Field(0.3, description="added attitude sigma [deg]")
+    reacquire_window_s: NonNegFloat = Field(
+        3.0, description="after a loss, search first tries ICP from the lost track's prediction"
+    )
+    filter_reinit_frames: Annotated[int, Field(ge=1)] = Field(
+        2, description="good registrations rejected by the filter gate in a row before re-init"
+    )
 
 
 # ---------------------------------------------------------------------------------------------

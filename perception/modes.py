@@ -139,7 +139,9 @@ class ModeLogic:
     ) -> FrameVerdict:
         """Is a tracking frame good? (Fitness, RMSE vs noise, jump vs prediction, filter gate.)"""
         c = self.cfg
-        if not converged:
+        if not converged and fitness < c.min_fitness:
+            # Running out of iterations with a good fit is a slow convergence, not a bad frame;
+            # the fit, noise and jump checks below still apply.
             return FrameVerdict(False, "registration did not converge")
         if fitness < c.min_fitness:
             return FrameVerdict(False, f"fitness {fitness:.2f} < {c.min_fitness:.2f}")

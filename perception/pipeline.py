@@ -99,6 +99,8 @@ class PipelineStats:
     losses: int = 0
     restarts: int = 0
     rejected_candidates: int = 0
+    filter_reinits: int = 0
+    reacquired_from_track: int = 0
     registration_time_s: list[float] = field(default_factory=list)
 
 
@@ -170,6 +172,8 @@ class TriDAR:
         self._search_started: float | None = None
         self._last_pose_t = -np.inf
         self._n_updates = 0
+        self._gate_rejects = 0
+        self._lost_track: PoseFilter | None = None
         self.stats = PipelineStats()
 
     def seed_pose(self, T_sensor_target: npt.ArrayLike, t: float) -> None:
@@ -322,19 +326,39 @@ class TriDAR:
         constraint = self._constraint()
         sigma = cloud.sigma
         icp_cfg = self.logic.icp_config_for_range(out.range_m)
-        if self.external_seed is not None:
-            res = icp(cloud.points, self.model, self.external_seed[1], sigma=sigma,
+        expected = float(np.median(sigma))
+        res, admitted, verdict, from_track = None, False, None, None
+        lost = self._lost_track
+        if lost is not None and t_ref - lost.t <= self.pc.reacquire_window_s:
+            # Reacquisition from the lost track's prediction (cheap); PAH only if that fails.
+            res = icp(cloud.points, self.model, lost.pose_at(t_ref), sigma=sigma,
                       directions=cloud.directions, config=icp_cfg)
-            self.external_seed = None
-        else:
-            res = self.pah.localize(cloud.points, self.rng, constraint=constraint, sigma=sigma)
+            verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
+                                       res.T_sensor_target, lost.pose_at(t_ref))
+            admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
+            from_track = lost if (verdict.good and admitted) else None
+        if from_track is None:
+            if self.external_seed is not None:
+                res = icp(cloud.points, self.model, self.external_seed[1], sigma=sigma,
+                          directions=cloud.directions, config=icp_cfg)
+                self.external_seed = None
+            else:
+                res = self.pah.localize(cloud.points, self.rng, constraint=constraint, sigma=sigma)
+            verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
+                                       res.T_sensor_target, None)
+            admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
+        assert res is not None and verdict is not None
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
-        expected = float(np.median(sigma))
-        verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected, res.T_sensor_target, None)
-        admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
         if verdict.good and admitted:
-            self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res))
+            if from_track is not None:
+                self.stats.reacquired_from_track += 1
+                self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res),
+                                       velocity=from_track.v, omega=from_track.w)
+            else:
+                self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res))
+            self._lost_track = None
+            self._gate_rejects = 0
             self._n_updates = 1
             self._last_pose_t = t_ref
             self.stats.acquisitions.append((self._search_started, t))
@@ -392,13 +416,26 @@ class TriDAR:
         expected = float(np.median(cloud.sigma))
         verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected, res.T_sensor_target, T_pred)
         if verdict.good:
-            upd = f.update(t_ref, res.T_sensor_target, self._measurement_cov(res))
-            if not upd.accepted:
-                verdict = self.logic.judge(True, res.fitness, res.inlier_rmse, expected,
-                                           res.T_sensor_target, None, filter_accepted=False)
-            else:
+            cov = self._measurement_cov(res)
+            upd = f.update(t_ref, res.T_sensor_target, cov)
+            if upd.accepted:
+                self._gate_rejects = 0
                 self._n_updates += 1
                 self._last_pose_t = t_ref
+            else:
+                # The registration is sound but the filter disagrees: an unmodelled manoeuvre or an
+                # overconfident filter. After a few such frames, restart the filter on the
+                # measurements (keeping the rates) rather than dropping a good track.
+                self._gate_rejects += 1
+                if self._gate_rejects >= self.pc.filter_reinit_frames:
+                    f.initialize(t_ref, res.T_sensor_target, cov, velocity=f.v, omega=f.w)
+                    self.stats.filter_reinits += 1
+                    self._gate_rejects = 0
+                    self._n_updates = 1
+                    self._last_pose_t = t_ref
+                else:
+                    verdict = self.logic.judge(True, res.fitness, res.inlier_rmse, expected,
+                                               res.T_sensor_target, None, filter_accepted=False)
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
@@ -410,6 +447,8 @@ class TriDAR:
     def _after_loss(self, lost: bool, t: float) -> None:
         if lost:
             self.stats.losses += 1
+            if self.filter.initialized:
+                self._lost_track = copy.deepcopy(self.filter)
             self.filter.reset()
             self._n_updates = 0
             self._search_started = t

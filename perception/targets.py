@@ -12,7 +12,7 @@ name        envelope [m]            what it is
 ==========  ======================  =====================================================================
 cubesat     1.20 x 0.63 x 0.92      ~1 m small satellite (seed 000 "1 cm / 1 deg on a 1 m target")
 cygnss      3.55 x 1.10 x 0.47      seed 003 experiment target: bus + two wings (dark cells on +z)
-iss_port    8.20 x 17.50 x 44.00    ISS-like docking area: node, PMA-like port (+y, V-bar), labs, truss
+iss_port    8.20 x 17.82 x 44.00    ISS-like docking area: node, PMA-like port (+y, V-bar), labs, truss
 hubble      13.45 x 19.30 x 8.25    Hubble-like 13.2 m x 4.3 m cylinder, two arrays, aft grapple port
 ==========  ======================  =====================================================================
 
@@ -52,7 +52,7 @@ __all__ = [
 ENVELOPES_M: dict[str, tuple[float, float, float]] = {
     "cubesat": (1.20, 0.63, 0.92),
     "cygnss": (3.55, 1.10, 0.47),
-    "iss_port": (8.20, 17.50, 44.00),
+    "iss_port": (8.20, 17.82, 44.00),
     "hubble": (13.45, 19.30, 8.25),
 }
 
@@ -462,6 +462,17 @@ def _iss_port() -> TargetModel:
         _Part(_box((2.0, 2.0, 44.0), (5.0, -8.0, 0)), 100_000.0, TRUSS),
         # Strut joining truss and lab.
         _Part(_box((1.6, 1.0, 1.0), (3.0, -8.0, 0)), 500.0, TRUSS),
+        # Close-range features on the hatch (y = 5.4): three guide petals at 120 deg and an
+        # off-centre centreline docking target standoff, so the last metres (where only the
+        # port fills the field of view) keep all six degrees of freedom observable.
+        *[
+            _Part(_box((0.12, 0.20, 0.12), (0.75 * np.cos(a), 5.5, 0.75 * np.sin(a))), 20.0, ALUMINIUM)
+            for a in np.radians([90.0, 210.0, 330.0])
+        ],
+        # (0.6 m off the axis: clear of a chaser hull sphere of 0.5 m centred 0.6 m behind the
+        # docking plane at contact.)
+        _Part(_box((0.08, 0.30, 0.08), (0.55, 5.55, 0.25)), 5.0, WHITE_PAINT),
+        _Part(_box((0.20, 0.02, 0.20), (0.55, 5.71, 0.25)), 2.0, WHITE_PAINT),
     ]
     return _assemble(
         "iss_port", parts, (0, 5.4, 0), (0, 1, 0),
@@ -469,7 +480,7 @@ def _iss_port() -> TargetModel:
         regions={
             "whole": ((2.0, -3.35, 0.0), (4.2, 8.8, 22.0)),
             "docking_area": ((0.0, 3.0, 0.0), (2.6, 2.6, 2.6)),
-            "port": ((0.0, 5.2, 0.0), (1.0, 0.4, 1.0)),
+            "port": ((0.0, 5.45, 0.0), (1.0, 0.3, 1.0)),
         },
     )
 

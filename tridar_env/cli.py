@@ -61,4 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    # Run the registry of the importable module (subcommands register on ``tridar_env.cli``,
+    # not on ``__main__``), so ``python -m tridar_env.cli`` sees every command.
+    from tridar_env.cli import main as _main
+
+    raise SystemExit(_main())

@@ -338,3 +338,17 @@ def test_cli_campaign_killed_then_resumed(tmp_path):
     assert list(table["index"]) == list(range(8))
     serial = run_campaign(load_campaign(path), tmp_path / "ref", serial=True, progress=False, plots=False)
     pd.testing.assert_frame_equal(frame(table), frame(serial.table))
+
+
+@pytest.mark.slow
+def test_campaign_on_an_existing_scheduler(tmp_path):
+    """--scheduler: the same rows on a cluster the campaign did not start."""
+    from dask.distributed import LocalCluster
+
+    cfg = CampaignConfig(**{**TINY, "runs": 3, "max_steps": 30})
+    ref = run_campaign(cfg, tmp_path / "serial", serial=True, progress=False, plots=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+        res = run_campaign(cfg, tmp_path / "remote", scheduler=c.scheduler_address, progress=False,
+                           plots=False)
+        assert c.scheduler_address.startswith("tcp://")
+    pd.testing.assert_frame_equal(frame(res.table), frame(ref.table))

@@ -206,3 +206,14 @@ def test_shipped_training_configs_validate():
     for p in paths:
         cfg = load_training(p)
         assert cfg.perception == "truth+noise" and cfg.n_envs == 2
+
+
+def test_same_seed_same_policy(tmp_path):
+    cfg = TrainingConfig(**{**TINY, "n_envs": 2, "vec_env": "dummy", "total_timesteps": 128,
+                            "checkpoint_every_steps": None})
+    a = load_policy(train(cfg, tmp_path / "a", progress=False).out_dir)
+    b = load_policy(train(cfg, tmp_path / "b", progress=False).out_dir)
+    c = load_policy(train(cfg.model_copy(update={"seed": 4}), tmp_path / "c", progress=False).out_dir)
+    obs = np.linspace(-1, 1, OBS_DIM).astype(np.float32)
+    np.testing.assert_array_equal(a._norm[0], b._norm[0])
+    assert np.array_equal(a(obs), b(obs)) and not np.array_equal(a(obs), c(obs))

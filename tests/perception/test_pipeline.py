@@ -87,7 +87,7 @@ def test_external_seed_acquires_and_tracks_to_centimetres() -> None:
     assert len(errs) == 15
     assert max(e[0] for e in errs) < 0.02 and max(e[1] for e in errs) < 0.3
     t, sv = hist[-1]
-    assert sv.valid.velocity and np.linalg.norm(sv.velocity - fly.v) < 0.01
+    assert sv.valid.velocity and np.linalg.norm(sv.velocity - fly.v) < 0.02
     assert sv.latency > 0  # published from an earlier scan, propagated to now
 
 

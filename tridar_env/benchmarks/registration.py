@@ -32,8 +32,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _peers(model_pts: np.ndarray, model_nrm: np.ndarray) -> dict[str, Any]:
-    """Callables ``(points, T_init) -> T`` for the peers that are importable."""
+    """Callables ``(points, T_init) -> T_sensor_target`` for the peers that are importable.
+
+    Both peers align a source cloud to a target cloud and return ``T_target_source``; with the
+    model as target and the scan (sensor frame) as source that is ``T_target_sensor``, so the
+    initial guess is ``inv(T_sensor_target)`` and the answer is inverted back.
+    """
     peers: dict[str, Any] = {}
+    # Peers need writable, contiguous float64 copies (the model arrays are read-only caches).
+    model_pts = np.array(model_pts, dtype=np.float64, order="C")
+    model_nrm = np.array(model_nrm, dtype=np.float64, order="C")
     try:
         import open3d as o3d
 
@@ -42,9 +50,7 @@ def _peers(model_pts: np.ndarray, model_nrm: np.ndarray) -> dict[str, Any]:
         reg = o3d.pipelines.registration
 
         def o3d_icp(P: np.ndarray, T0: np.ndarray) -> np.ndarray:
-            # Open3D aligns source to target: source = scan (sensor), target = model, so it
-            # estimates T_target_sensor.
-            src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+            src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(P, dtype=np.float64)))
             r = reg.registration_icp(
                 src, tgt, 0.05, np.linalg.inv(T0),
                 reg.TransformationEstimationPointToPlane(),
@@ -58,11 +64,20 @@ def _peers(model_pts: np.ndarray, model_nrm: np.ndarray) -> dict[str, Any]:
     try:
         import small_gicp
 
-        tgt_cloud, tgt_tree = small_gicp.preprocess_points(model_pts, downsampling_resolution=0.01)
+        # Model: downsampled to ~1 cm, covariances from 10 neighbours, KD-tree, built once.
+        tgt_cloud, tgt_tree = small_gicp.preprocess_points(
+            model_pts, downsampling_resolution=0.01, num_neighbors=10, num_threads=1
+        )
 
         def sg_icp(P: np.ndarray, T0: np.ndarray) -> np.ndarray:
+            # The scan needs its own covariances (GICP) too: preprocessing is part of the frame's
+            # time. A fine voxel keeps all of a sparse 1,000-point scan.
+            src_cloud, _ = small_gicp.preprocess_points(
+                np.array(P, dtype=np.float64), downsampling_resolution=0.005, num_neighbors=10,
+                num_threads=1,
+            )
             r = small_gicp.align(
-                tgt_cloud, small_gicp.PointCloud(P), tgt_tree,
+                tgt_cloud, src_cloud, tgt_tree,
                 init_T_target_source=np.linalg.inv(T0), registration_type="GICP",
                 max_correspondence_distance=0.05, num_threads=1,
             )

@@ -19,22 +19,20 @@ import yaml
 from tridar_env.cli import command
 
 DEMO_ENV_ID = "TriDAR/FinalApproach-v0"
-CONTROLLER_HELP = (
-    "glideslope | lqr | sync | sb3:<model.zip> | module:Class "
-    "(default: sync for a 6-DOF chaser, else glideslope)"
-)
+CONTROLLERS = "glideslope | lqr | sync | sb3:<model.zip> | module:Class"
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--controller", default=None, help=CONTROLLER_HELP)
+def _common(p: argparse.ArgumentParser, controller_default: str, out_default: str) -> None:
+    p.add_argument("--controller", default=None,
+                   help=f"{CONTROLLERS} (default: {controller_default})")
     p.add_argument("--perception", choices=["tridar", "truth", "truth+noise"], default=None,
                    help="state-vector source (default: env.perception of the mission config)")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
-    p.add_argument("--out", type=Path, default=None, help="report folder")
-    p.add_argument("--render-every", type=int, default=20, metavar="N",
-                   help="render a video frame every N steps (default 20; 0: no video)")
+    p.add_argument("--out", type=Path, default=None, help=f"report folder (default {out_default})")
+    p.add_argument("--render-every", type=int, default=40, metavar="N",
+                   help="render a video frame every N steps (default 40; 0: no video)")
     p.add_argument("--no-video", action="store_true", help="skip rendering and the video")
-    p.add_argument("--fps", type=int, default=10, help="video frame rate (default 10)")
+    p.add_argument("--fps", type=int, default=8, help="video frame rate (default 8)")
     p.add_argument("--max-steps", type=int, default=None, help="cap on the number of steps")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, nested with '.' or '__' (env.initial.range_m=20); "
@@ -45,14 +43,14 @@ def _common(p: argparse.ArgumentParser) -> None:
 @command("demo", "fly the final approach with the glideslope controller and write a report folder")
 def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env-id", default=DEMO_ENV_ID, help=f"Gymnasium id (default {DEMO_ENV_ID})")
-    _common(p)
+    _common(p, "glideslope", "reports/demo-<time>")
     p.set_defaults(handler=run_demo, controller_default="glideslope")
 
 
 @command("run", "fly any mission YAML with a controller and write a report folder")
 def add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("mission", help="mission YAML file or a name in configs/missions")
-    _common(p)
+    _common(p, "sync for a 6-DOF chaser, else glideslope", "reports/run-<mission>-<time>")
     p.set_defaults(handler=run_mission, controller_default=None)
 
 

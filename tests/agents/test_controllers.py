@@ -1,0 +1,259 @@
+"""Scripted controllers: each docks in its scenario on truth, the laws' pieces hold their numbers,
+short noisy closed loops stay finite, and an invalid pose is never acted on."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import tridar_env  # noqa: F401  (registers the ids)
+from agents.episode import run_episode
+from agents.glideslope import GlideslopeController
+from agents.lqr import LQRController, dock_frame_in_lvlh, docking_frame_model
+from agents.sync import SyncController
+from perception.config import load_config
+from tridar_env.dynamics import cw_stm, mean_motion
+from tridar_env.env import OBS_DIM, observation_slices
+
+S = observation_slices()
+
+
+def _inside_envelope(env: gym.Env, contact: dict[str, float]) -> None:
+    e = env.unwrapped.cfg.env.envelope
+    assert e.axial_speed_min_m_s <= contact["closing_speed"] <= e.axial_speed_max_m_s
+    assert contact["lateral_offset"] <= e.lateral_offset_max_m
+    assert contact["lateral_speed"] <= e.lateral_speed_max_m_s
+    assert contact["misalignment_deg"] <= e.misalignment_max_deg
+    assert contact["angular_rate_deg_s"] <= e.angular_rate_max_deg_s
+
+
+# ---------------------------------------------------------------------- docking on truth
+@pytest.mark.parametrize("name", ["glideslope", "lqr"])
+def test_final_approach_controllers_dock_on_truth(name: str) -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth")
+    cls = GlideslopeController if name == "glideslope" else LQRController
+    r = run_episode(env, cls(env.unwrapped.cfg), seed=1)
+    assert r.outcome == "docked"
+    _inside_envelope(env, r.contact)
+    assert abs(r.contact["closing_speed"] - 0.07) < 0.005  # arrives at v_final, not by luck
+    assert r.contact["lateral_offset"] < 0.02
+    assert r.delta_v_m_s < 1.0  # measured 0.58 (glideslope), 0.71 (lqr) m/s from ~30 m
+    assert r.sim_time_s < 250.0
+
+
+def test_sync_docks_tumbling_target_on_truth() -> None:
+    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth")
+    ctrl = SyncController(env.unwrapped.cfg)
+    r = run_episode(env, ctrl, seed=3)
+    assert r.outcome == "docked"
+    _inside_envelope(env, r.contact)
+    # synchronised with a 3 deg/s, 10 deg-nutation tumble: relative rate a small part of 0.15 deg/s
+    assert r.contact["angular_rate_deg_s"] < 0.03
+    assert r.contact["misalignment_deg"] < 0.5
+    assert r.delta_v_m_s < 4.0  # measured 2.0 m/s
+    assert ctrl.phase == "close"
+
+
+# ---------------------------------------------------------------------- the laws' pieces
+def test_lqr_model_is_cw_rotated_into_the_docking_frame() -> None:
+    cfg = load_config("final_approach")
+    R = dock_frame_in_lvlh(cfg)
+    assert R is not None
+    # the ISS-like port faces +V-bar, so the chaser's docking axis points along -y (LVLH)
+    np.testing.assert_allclose(R[:, 2], [0.0, -1.0, 0.0], atol=1e-12)
+    n = mean_motion(cfg.dynamics.orbit.altitude_m)
+    A, B = docking_frame_model(n, 0.2, R)
+    phi, gamma = cw_stm(n, 0.2)
+    x_lvlh = np.array([3.0, -2.0, 1.0, 0.01, -0.02, 0.03])
+    u_lvlh = np.array([1e-3, -2e-3, 5e-4])
+    Rt = np.kron(np.eye(2), R.T)
+    np.testing.assert_allclose(A @ (Rt @ x_lvlh) + B @ (R.T @ u_lvlh),
+                               Rt @ (phi @ x_lvlh + gamma @ u_lvlh), atol=1e-12)
+    # a tumbling target has no constant docking frame: double integrator
+    assert dock_frame_in_lvlh(load_config("tumbling_target")) is None
+    A2, B2 = docking_frame_model(n, 0.5, None)
+    np.testing.assert_allclose(A2[:3, 3:], 0.5 * np.eye(3))
+    np.testing.assert_allclose(B2[:3], 0.125 * np.eye(3))
+
+
+def test_lqr_closed_loop_is_stable_and_feedforward_tracks_the_aim() -> None:
+    cfg = load_config("final_approach", env__perception="truth")
+    ctrl = LQRController(cfg)
+    rho = max(abs(np.linalg.eigvals(ctrl.A - ctrl.B @ ctrl.K)))
+    assert rho < 0.99
+    # the chaser exactly on the aim state: the command is the pure feed-forward, and it is small
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["valid"]] = 1.0
+    obs[S["fuel_fraction"]] = 1.0
+    z = 10.0  # below v_max / slope: the aim decelerates at slope * v
+    obs[S["port_position_dock"]] = [0.0, 0.0, z]
+    obs[S["port_velocity_dock"]] = [0.0, 0.0, -ctrl._aim_speed(z)]
+    a = ctrl.accel_command(obs)
+    np.testing.assert_allclose(a[2], -ctrl.g.slope * ctrl._aim_speed(z), rtol=0.05)
+    # moving along -V-bar at v, the CW Coriolis term 2 n y' must be cancelled along R-bar (dock x)
+    n = mean_motion(cfg.dynamics.orbit.altitude_m)
+    np.testing.assert_allclose(a[0], 2.0 * n * ctrl._aim_speed(z), rtol=0.05)
+    assert abs(a[1]) < 1e-9
+    assert ctrl.z_aim == pytest.approx(z - ctrl._aim_speed(z) * ctrl.dt)
+
+
+def test_sync_compensates_the_rotating_frame_terms() -> None:
+    """Synchronised and on the hold point, the thrust is exactly the centripetal term."""
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    ctrl.phase = "sync"
+    s = ctrl.g.standoff_m
+    w = np.array([0.02, -0.01, 0.05])  # chaser (= port) inertial rate, body frame [rad/s]
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["valid"]] = 1.0
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["port_position_dock"]] = [0.0, 0.0, s]
+    obs[S["q_dock_port"]] = [0.0, 1.0, 0.0, 0.0]  # R_dock_port = diag(1, -1, -1): aligned
+    obs[S["chaser_rate_body"]] = w
+    w = obs[S["chaser_rate_body"]].astype(np.float64)
+    a, alpha = ctrl.command(obs)
+    r = np.array([0.0, 0.0, s]) + np.asarray(cfg.dynamics.chaser.dock_position_m)
+    expected = -np.cross(w, np.cross(w, r))
+    np.testing.assert_allclose(a, expected, atol=1e-9)
+    assert np.linalg.norm(expected) > 4e-3  # the term matters: 7% of 10 N / 170 kg
+    np.testing.assert_allclose(alpha, 0.0, atol=1e-12)
+
+
+def test_sync_closes_only_after_dwelling_matched() -> None:
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    ctrl.phase = "sync"
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["valid"]] = 1.0
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["port_position_dock"]] = [0.0, 0.0, ctrl.g.standoff_m]
+    obs[S["q_dock_port"]] = [0.0, 1.0, 0.0, 0.0]
+    steps = round(ctrl.g.dwell_s / ctrl.dt)
+    for _ in range(steps - 1):
+        ctrl(obs)
+    assert ctrl.phase == "sync" and ctrl.s == ctrl.g.standoff_m
+    ctrl(obs)
+    assert ctrl.phase == "close"
+    ctrl(obs)
+    assert ctrl.s < ctrl.g.standoff_m
+    # a 5 deg attitude error (10x the threshold after the low-pass) freezes the hold point
+    q = np.array([0.0, 1.0, 0.0, 0.0])
+    tilt = np.array([np.cos(np.radians(2.5)), 0.0, 0.0, np.sin(np.radians(2.5))])  # 5 deg about z
+    obs[S["q_dock_port"]] = _qmul(tilt, q)
+    for _ in range(20):
+        ctrl(obs)
+    assert ctrl.phase == "sync"
+    frozen = ctrl.s
+    ctrl(obs)
+    assert ctrl.s == frozen
+
+
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    ])
+
+
+# ---------------------------------------------------------------------- invalid pose
+def _bearing_obs(range_rate: float, az: float, el: float) -> np.ndarray:
+    """Bearing-mode observation with garbage in the (invalid) pose blocks."""
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["mode_onehot"]] = [1.0, 0.0, 0.0]
+    obs[S["valid"]] = [1, 1, 1, 0, 0, 0, 0]
+    obs[S["port_position_dock"]] = [5.0, -3.0, 2.0]  # must be ignored: not valid
+    obs[S["port_velocity_dock"]] = [0.5, 0.5, -0.5]
+    obs[S["q_dock_port"]] = [1.0, 0.0, 0.0, 0.0]
+    obs[S["omega_port_dock"]] = [0.1, 0.1, 0.1]
+    obs[S["range"]] = 40.0
+    obs[S["range_rate"]] = range_rate
+    obs[S["bearing"]] = [az, el]
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["chaser_rate_body"]] = [0.0, 0.0, 0.05]
+    return obs
+
+
+@pytest.mark.parametrize("mission,make", [
+    ("final_approach", LQRController),
+    ("tumbling_target", SyncController),
+])
+def test_invalid_pose_brakes_along_the_line_of_sight_or_coasts(mission: str, make: type) -> None:
+    cfg = load_config(mission, env__perception="truth")
+    ctrl = make(cfg)
+    az, el = 0.1, -0.05
+    los = np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
+    act = ctrl(_bearing_obs(-0.2, az, el)).astype(np.float64)
+    thrust = act[:3]
+    # braking a 0.2 m/s closing rate: thrust straight away from the target, nothing sideways
+    assert thrust @ los < -0.05
+    np.testing.assert_allclose(np.cross(thrust, los), 0.0, atol=1e-6)
+    if act.size == 6:
+        np.testing.assert_array_equal(act[3:], 0.0)  # keep the current spin, no stale attitude
+        assert ctrl.phase == "safe"
+    # the pose blocks are ignored: other garbage, same action
+    obs = _bearing_obs(-0.2, az, el)
+    obs[S["port_position_dock"]] = [-9.0, 9.0, 1.0]
+    np.testing.assert_array_equal(ctrl(obs), act.astype(np.float32))
+    # opening or slow: coast
+    np.testing.assert_array_equal(ctrl(_bearing_obs(+0.1, az, el)), 0.0)
+    np.testing.assert_array_equal(ctrl(_bearing_obs(-0.005, az, el)), 0.0)
+
+
+def test_lqr_restarts_its_aim_after_loss_of_track() -> None:
+    cfg = load_config("final_approach", env__perception="truth")
+    ctrl = LQRController(cfg)
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["valid"]] = 1.0
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["port_position_dock"]] = [0.0, 0.0, 25.0]
+    for _ in range(50):
+        ctrl(obs)
+    assert ctrl.z_aim < 24.0
+    ctrl(_bearing_obs(-0.05, 0.0, 0.0))
+    assert np.isnan(ctrl.z_aim)
+    obs[S["port_position_dock"]] = [0.0, 0.0, 18.0]
+    ctrl(obs)
+    assert 17.9 < ctrl.z_aim < 18.0  # from the new estimate, not the stale aim
+
+
+# ---------------------------------------------------------------------- noisy closed loops
+@pytest.mark.parametrize("env_id,make", [
+    ("TriDAR/FinalApproach-v0", GlideslopeController),
+    ("TriDAR/FinalApproach-v0", LQRController),
+    ("TriDAR/TumblingTarget-v0", SyncController),
+])
+def test_short_noisy_closed_loop_is_finite(env_id: str, make: type) -> None:
+    env = gym.make(env_id, perception="truth+noise")
+    ctrl = make(env.unwrapped.cfg)
+    obs, _ = env.reset(seed=5)
+    for _ in range(150):
+        a = ctrl(obs)
+        assert a.dtype == np.float32 and a.shape == env.action_space.shape
+        assert np.all(np.isfinite(a)) and np.all(np.abs(a) <= 1.0)
+        obs, _, term, trunc, info = env.step(a)
+        assert np.all(np.isfinite(obs))
+        assert not (term or trunc), info["termination"]
+
+
+NOISY_SEEDS = [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("seed", NOISY_SEEDS)
+def test_sync_docks_tumbling_target_with_noise(seed: int) -> None:
+    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth+noise")
+    r = run_episode(env, SyncController(env.unwrapped.cfg), seed=seed)
+    assert r.outcome == "docked"
+    _inside_envelope(env, r.contact)
+
+
+@pytest.mark.parametrize("seed", NOISY_SEEDS)
+def test_lqr_docks_final_approach_with_noise(seed: int) -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth+noise")
+    r = run_episode(env, LQRController(env.unwrapped.cfg), seed=seed)
+    assert r.outcome == "docked"
+    _inside_envelope(env, r.contact)

@@ -20,7 +20,7 @@ def test_readme_has_exactly_two_setup_commands() -> None:
     for cmd in cmds:
         assert "\n" not in cmd.strip(), "each set-up command is one line"
         assert cmd.startswith("pip install torch==2.13.0 && "), "CPU torch must be installed first"
-    assert cmds[0].split("&&")[-1].strip().startswith("tridar-env ")
+    assert cmds[0].split("&&")[-1].strip() == "tridar-env demo"
     assert cmds[1].rstrip().endswith("pytest")
 
 

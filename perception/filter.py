@@ -20,6 +20,7 @@ centroid ranges, so that the closing rate comes from a filter over time (seed 00
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from perception.geometry import make_T
+from perception.geometry import make_T, skew
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -59,6 +60,12 @@ class PoseFilter:
         init_velocity_sigma: 1-sigma of the velocity at initialisation [m/s].
         init_rate_sigma: 1-sigma of the angular velocity at initialisation [rad/s].
         gate_chi2: Mahalanobis gate of the 6-dof innovation (rejected beyond it).
+        ref_point: (3,) point of the target body [m, target frame] whose motion the filter
+            models (default: the target origin). Tracking the docking port instead of a centre of
+            mass 12 m away keeps attitude noise from leaking, through the lever arm, into the
+            position and velocity that matter at the port. Inputs and outputs
+            (:meth:`initialize`, :meth:`update`, :meth:`pose_at`, :meth:`target_state`) are always
+            about the target origin; ``p, v, R, w, P`` are the internal reference-point state.
     """
 
     def __init__(
@@ -68,6 +75,7 @@ class PoseFilter:
         init_velocity_sigma: float = 0.3,
         init_rate_sigma: float = float(np.deg2rad(6.0)),
         gate_chi2: float = CHI2_6_999,
+        ref_point: npt.ArrayLike | None = None,
     ) -> None:
         for name, val in (("accel_psd", accel_psd), ("angacc_psd", angacc_psd),
                           ("init_velocity_sigma", init_velocity_sigma),
@@ -79,6 +87,9 @@ class PoseFilter:
         self.sv0 = float(init_velocity_sigma)
         self.sw0 = float(init_rate_sigma)
         self.gate = float(gate_chi2)
+        self.r = np.zeros(3) if ref_point is None else np.asarray(ref_point, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(self.r)):
+            raise ValueError(f"ref_point={self.r.tolist()}; expected a finite (3,) point [m]")
         self.initialized = False
         self.t = 0.0
         self.p = np.zeros(3)
@@ -86,6 +97,28 @@ class PoseFilter:
         self.R = np.eye(3)
         self.w = np.zeros(3)
         self.P = np.eye(12)
+
+    # ------------------------------------------------------------------ reference point
+    def _pose_jacobian(self, R: FloatArray) -> FloatArray:
+        """(6, 6) map of (dp, dtheta) at the target origin to the reference point."""
+        J = np.eye(6)
+        J[:3, 3:] = -skew(R @ self.r)
+        return J
+
+    def _to_ref(self, T: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+        J = self._pose_jacobian(T[:3, :3])
+        return make_T(T[:3, :3], T[:3, 3] + T[:3, :3] @ self.r), J @ cov @ J.T
+
+    def target_state(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``(p, v, R, w, P)`` of the target origin: position, velocity, attitude, rate, (12, 12)."""
+        a = self.R @ self.r
+        A = skew(a)
+        J = np.eye(12)
+        J[0:3, 6:9] = A  # dp = dp_ref + [a]x dtheta
+        J[3:6, 9:12] = A  # dv = dv_ref + [a]x domega + [w]x [a]x dtheta
+        J[3:6, 6:9] = skew(self.w) @ A
+        return (self.p - a, self.v - np.cross(self.w, a), self.R.copy(), self.w.copy(),
+                J @ self.P @ J.T)
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self) -> None:
@@ -96,12 +129,15 @@ class PoseFilter:
         self, t: float, T_sensor_target: FloatArray, cov_pose: FloatArray,
         velocity: FloatArray | None = None, omega: FloatArray | None = None,
     ) -> None:
-        """Start from a pose (and optionally rates), with ``cov_pose`` (6, 6) over (dp, dtheta)."""
+        """Start from a pose (and optionally rates), with ``cov_pose`` (6, 6) over (dp, dtheta);
+        all about the target origin (velocity of the origin, rate in the sensor frame)."""
+        T_ref, cov_pose = self._to_ref(np.asarray(T_sensor_target, dtype=np.float64), cov_pose)
         self.t = float(t)
-        self.p = np.asarray(T_sensor_target[:3, 3], dtype=np.float64).copy()
-        self.R = np.asarray(T_sensor_target[:3, :3], dtype=np.float64).copy()
-        self.v = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64).copy()
+        self.p = T_ref[:3, 3].copy()
+        self.R = T_ref[:3, :3].copy()
         self.w = np.zeros(3) if omega is None else np.asarray(omega, dtype=np.float64).copy()
+        v0 = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
+        self.v = v0 + np.cross(self.w, self.R @ self.r)
         P = np.zeros((12, 12))
         P[0:3, 0:3] = cov_pose[:3, :3]
         P[6:9, 6:9] = cov_pose[3:, 3:]
@@ -126,20 +162,15 @@ class PoseFilter:
         return F, Q
 
     def pose_at(self, t: float) -> FloatArray:
-        """Predicted ``T_sensor_target`` at time ``t`` (no state change)."""
+        """Predicted ``T_sensor_target`` (of the target origin) at time ``t`` (no state change)."""
         dt = float(t) - self.t
         R = Rotation.from_rotvec(self.w * dt).as_matrix() @ self.R
-        return make_T(R, self.p + self.v * dt)
+        return make_T(R, self.p + self.v * dt - R @ self.r)
 
     def motion(self) -> Callable[[float], FloatArray]:
         """``t -> T_sensor_target`` from the current state (for de-skewing a scan)."""
-        p, v, R, w, t0 = self.p.copy(), self.v.copy(), self.R.copy(), self.w.copy(), self.t
-
-        def f(t: float) -> FloatArray:
-            tau = float(t) - t0
-            return make_T(Rotation.from_rotvec(w * tau).as_matrix() @ R, p + v * tau)
-
-        return f
+        snapshot = copy.deepcopy(self)
+        return snapshot.pose_at
 
     def predict(self, t: float) -> None:
         """Propagate the state and covariance to time ``t`` (>= current time)."""
@@ -161,6 +192,7 @@ class PoseFilter:
         Innovations beyond the chi-square gate are rejected (the state is only predicted).
         """
         self.predict(t)
+        T_meas, cov_pose = self._to_ref(np.asarray(T_meas, dtype=np.float64), cov_pose)
         z = np.concatenate([
             T_meas[:3, 3] - self.p,
             Rotation.from_matrix(T_meas[:3, :3] @ self.R.T).as_rotvec(),
@@ -190,7 +222,8 @@ class PoseFilter:
 
     @property
     def T_sensor_target(self) -> FloatArray:
-        return make_T(self.R, self.p)
+        """Current pose of the target origin."""
+        return make_T(self.R, self.p - self.R @ self.r)
 
 
 class RangeFilter:

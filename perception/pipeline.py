@@ -158,7 +158,8 @@ class TriDAR:
     def reset(self, rng: np.random.Generator) -> None:
         """Start-up: bearing mode, empty filters, fresh counters; ``rng`` drives the sensor and PAH."""
         self.rng = rng
-        self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2)
+        self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2,
+                                 ref_point=self.target.T_target_port[:3, 3])
         self.range_filter = RangeFilter(self.pc.process_noise_accel**2)
         self.logic.reset(0.0)
         self.sensor.frame_counter = 0
@@ -215,7 +216,7 @@ class TriDAR:
 
     def _restart(self, t: float) -> None:
         self.stats.restarts += 1
-        rng_m = float(np.linalg.norm(self.filter.p)) if self.filter.initialized else None
+        rng_m = float(np.linalg.norm(self.filter.T_sensor_target[:3, 3])) if self.filter.initialized else None
         self.logic.restart(t, rng_m)
         self.filter.reset()
         self._n_updates = 0
@@ -354,7 +355,7 @@ class TriDAR:
             if from_track is not None:
                 self.stats.reacquired_from_track += 1
                 self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res),
-                                       velocity=from_track.v, omega=from_track.w)
+                                       velocity=from_track.target_state()[1], omega=from_track.w)
             else:
                 self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res))
             self._lost_track = None
@@ -428,7 +429,8 @@ class TriDAR:
                 # measurements (keeping the rates) rather than dropping a good track.
                 self._gate_rejects += 1
                 if self._gate_rejects >= self.pc.filter_reinit_frames:
-                    f.initialize(t_ref, res.T_sensor_target, cov, velocity=f.v, omega=f.w)
+                    v_origin = f.target_state()[1]
+                    f.initialize(t_ref, res.T_sensor_target, cov, velocity=v_origin, omega=f.w)
                     self.stats.filter_reinits += 1
                     self._gate_rejects = 0
                     self._n_updates = 1
@@ -473,24 +475,24 @@ class TriDAR:
         cov = np.eye(12) * INVALID_VARIANCE
         pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
         if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
-            f = copy.copy(out.filt)
-            f.p, f.v, f.R, f.w, f.P = f.p.copy(), f.v.copy(), f.R.copy(), f.w.copy(), f.P.copy()
+            f = copy.deepcopy(out.filt)
             if t > f.t:
                 f.predict(t)
+            fp, fv, fR, fw, fP = f.target_state()
             rates_ok = out.n_updates >= 3
             valid_kw.update(position=True, attitude=True, velocity=rates_ok, angular_velocity=rates_ok)
-            rng_m = float(np.linalg.norm(f.p))
-            kw.update(position=f.p, quaternion=matrix_to_quat(f.R), range=rng_m,
-                      bearing=np.array([np.arctan2(f.p[0], f.p[2]), np.arctan2(-f.p[1], np.hypot(f.p[0], f.p[2]))]))
+            rng_m = float(np.linalg.norm(fp))
+            kw.update(position=fp, quaternion=matrix_to_quat(fR), range=rng_m,
+                      bearing=np.array([np.arctan2(fp[0], fp[2]), np.arctan2(-fp[1], np.hypot(fp[0], fp[2]))]))
             valid_kw.update(bearing=True, range=True)
             blocks = [slice(0, 3), slice(6, 9)]
             if rates_ok:
-                kw.update(velocity=f.v, angular_velocity=f.w, range_rate=float(f.p @ f.v / max(rng_m, 1e-9)))
+                kw.update(velocity=fv, angular_velocity=fw, range_rate=float(fp @ fv / max(rng_m, 1e-9)))
                 valid_kw["range_rate"] = True
                 blocks += [slice(3, 6), slice(9, 12)]
             for a in blocks:
                 for b in blocks:
-                    cov[a, b] = f.P[a, b]
+                    cov[a, b] = fP[a, b]
         return StateVector(
             t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
             n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,

@@ -154,6 +154,10 @@ class RegistrationResult:
 #: surface in which every cell lists its candidate faces.
 _GRID_CELLS = 48
 _GRID_BAND_CELLS = 3.0
+#: Largest cell [m] when the model allows it (up to ``_GRID_MAX_CELLS``): candidate lists stay
+#: short on large structures (tens of metres) whose cells would otherwise hold dozens of facets.
+_GRID_MAX_CELL_M = 0.15
+_GRID_MAX_CELLS = 256
 #: Coplanarity tolerance [rad] for merging adjacent triangles into one facet.
 _FACET_ANGLE_RAD = 1e-6
 #: Offset of an ignored (interior) edge row: its edge test never fires.
@@ -210,7 +214,7 @@ class FaceGrid:
 
     @classmethod
     def build(
-        cls, mesh: trimesh.Trimesh, cells: int = _GRID_CELLS, band_cells: float = _GRID_BAND_CELLS
+        cls, mesh: trimesh.Trimesh, cells: int | None = None, band_cells: float = _GRID_BAND_CELLS
     ) -> FaceGrid:
         """Index a triangle mesh (target frame); normals follow the winding of the faces."""
         tris = np.asarray(mesh.triangles, dtype=np.float64)
@@ -258,6 +262,8 @@ class FaceGrid:
 
         lo = tris.reshape(-1, 3).min(axis=0)
         hi = tris.reshape(-1, 3).max(axis=0)
+        if cells is None:
+            cells = int(np.clip(float((hi - lo).max()) / _GRID_MAX_CELL_M, _GRID_CELLS, _GRID_MAX_CELLS))
         h = max(float((hi - lo).max()) / int(cells), 1e-6)
         band = float(band_cells) * h
         half_diag = 0.5 * np.sqrt(3.0) * h

@@ -466,13 +466,13 @@ def _iss_port() -> TargetModel:
         # off-centre centreline docking target standoff, so the last metres (where only the
         # port fills the field of view) keep all six degrees of freedom observable.
         *[
-            _Part(_box((0.12, 0.20, 0.12), (0.75 * np.cos(a), 5.5, 0.75 * np.sin(a))), 20.0, ALUMINIUM)
+            _Part(_box((0.25, 0.25, 0.25), (0.75 * np.cos(a), 5.525, 0.75 * np.sin(a))), 30.0, ALUMINIUM)
             for a in np.radians([90.0, 210.0, 330.0])
         ],
         # (0.6 m off the axis: clear of a chaser hull sphere of 0.5 m centred 0.6 m behind the
         # docking plane at contact.)
-        _Part(_box((0.08, 0.30, 0.08), (0.55, 5.55, 0.25)), 5.0, WHITE_PAINT),
-        _Part(_box((0.20, 0.02, 0.20), (0.55, 5.71, 0.25)), 2.0, WHITE_PAINT),
+        _Part(_box((0.12, 0.30, 0.12), (0.55, 5.55, 0.25)), 5.0, WHITE_PAINT),
+        _Part(_box((0.26, 0.02, 0.26), (0.55, 5.71, 0.25)), 2.0, WHITE_PAINT),
     ]
     return _assemble(
         "iss_port", parts, (0, 5.4, 0), (0, 1, 0),

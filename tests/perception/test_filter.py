@@ -87,3 +87,29 @@ def test_bad_filter_parameters_named() -> None:
         PoseFilter(accel_psd=-1.0)
     with pytest.raises(ValueError, match="accel_psd"):
         RangeFilter(accel_psd=float("nan"))
+
+
+def test_reference_point_filter_reports_the_target_origin() -> None:
+    """Filtering the port 12 m from the centre of mass still reports the origin's state exactly."""
+    rng = np.random.default_rng(2)
+    p0, v = np.array([0.2, -0.1, 30.0]), np.array([0.0, 0.01, -0.05])
+    R0 = Rotation.from_euler("xyz", [5, 10, -15], degrees=True).as_matrix()
+    w = np.radians([0.0, 0.0, 0.5])
+    r = np.array([0.0, 12.0, 0.0])
+    sp, sa = 0.01, np.radians(0.3)
+    cov = np.diag([sp**2] * 3 + [sa**2] * 3)
+    f = PoseFilter(accel_psd=1e-6, angacc_psd=1e-8, ref_point=r)
+    for k in range(200):
+        t = 0.2 * k
+        T = _truth(t, p0, v, R0, w)
+        Tm = make_T(Rotation.from_rotvec(rng.normal(0, sa, 3)).as_matrix() @ T[:3, :3], T[:3, 3] + rng.normal(0, sp, 3))
+        if not f.initialized:
+            f.initialize(t, Tm, cov)
+        else:
+            f.update(t, Tm, cov)
+    T = _truth(199 * 0.2, p0, v, R0, w)
+    p, vel, R, om, P = f.target_state()
+    np.testing.assert_allclose(f.T_sensor_target, make_T(R, p), atol=1e-12)
+    assert np.linalg.norm(p - T[:3, 3]) < 0.05 and np.linalg.norm(vel - v) < 0.01
+    assert np.degrees(np.linalg.norm(om - w)) < 0.05
+    assert P.shape == (12, 12) and np.all(np.linalg.eigvalsh(0.5 * (P + P.T)) > -1e-12)

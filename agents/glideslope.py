@@ -13,7 +13,9 @@ port sits at ``p`` (+z ahead); the chaser's own acceleration ``a`` (body frame) 
 
 When the pose is not valid (bearing mode, search, loss of track) the rule is **never act on a stale
 pose**: null the measured range rate if it is closing (a braking impulse along the line of sight,
-which is known from the bearing), otherwise coast with zero thrust.
+which is known from the bearing), otherwise coast with zero thrust. Inside ``commit_range_m`` of the
+port (the last valid pose said so) the approach is committed: braking there would turn a nominal
+contact into a too-slow one, so the controller coasts (zero thrust) at its closing speed instead.
 """
 
 from __future__ import annotations
@@ -66,9 +68,11 @@ class GlideslopeController:
             raise ValueError("GlideslopeController expects dynamics.chaser.thrust_frame='body'")
         m0 = ch.dry_mass_kg + ch.propellant_kg
         self.inertia = m0 * (2.0 * ch.hull_radius_m) ** 2 / 6.0
+        self._last_axial = float("inf")
 
     def reset(self) -> None:
-        """Nothing to forget between episodes (the law is static)."""
+        """Forget the last valid axial distance (the only memory: the commit rule)."""
+        self._last_axial = float("inf")
 
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
@@ -79,6 +83,8 @@ class GlideslopeController:
         valid = obs[_S["valid"]]
         pose_ok = valid[3] > 0.5 and valid[4] > 0.5
         if not pose_ok:
+            if self._last_axial <= g.commit_range_m:
+                return np.zeros(3)  # committed: coast into contact
             # No trusted pose: brake a closing range rate along the line of sight, else coast.
             if valid[2] > 0.5 and obs[_S["range_rate"]][0] < -0.01:
                 az, el = obs[_S["bearing"]]
@@ -88,6 +94,7 @@ class GlideslopeController:
         p = obs[_S["port_position_dock"]].astype(np.float64)
         v = obs[_S["port_velocity_dock"]].astype(np.float64)
         z = max(p[2], 0.0)
+        self._last_axial = z
         lat = np.hypot(p[0], p[1])
         v_des = float(np.clip(g.slope * z, g.v_final, g.v_max))
         if z > g.commit_range_m and lat > g.lateral_cone * z + 0.05:

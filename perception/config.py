@@ -384,7 +384,11 @@ class ChaserConfig(StrictModel):
     max_torque_nm: PositiveFloat = 2.0
     thrust_frame: Literal["lvlh", "body"] = "body"
     attitude: Literal["ideal", "controlled"] = "ideal"
-    sensor_position_m: Vec3 = (0.0, 0.2, -0.4)
+    sensor_position_m: Vec3 = Field(
+        (0.45, 0.2, -1.5),
+        description="TriDAR mount [m], chaser body: set back and aimed so that at contact the "
+        "docking target and guide petals stay in its 30 deg field of view",
+    )
     sensor_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
     dock_position_m: Vec3 = (0.0, 0.0, 0.6)
     hull_radius_m: PositiveFloat = 0.5

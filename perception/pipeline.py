@@ -327,7 +327,7 @@ class TriDAR:
         constraint = self._constraint()
         sigma = cloud.sigma
         icp_cfg = self.logic.icp_config_for_range(out.range_m)
-        expected = float(np.median(sigma))
+        expected = max(float(np.median(sigma)), self.pc.measurement_floor_m)
         res, admitted, verdict, from_track = None, False, None, None
         lost = self._lost_track
         if lost is not None and t_ref - lost.t <= self.pc.reacquire_window_s:
@@ -414,8 +414,12 @@ class TriDAR:
                   config=self.logic.icp_config_for_range(rng_m))
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
-        expected = float(np.median(cloud.sigma))
-        verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected, res.T_sensor_target, T_pred)
+        expected = max(float(np.median(cloud.sigma)), self.pc.measurement_floor_m)
+        # With a running filter the consistency test is its innovation gate, which weighs each
+        # direction by the registration's covariance: a pose that slides along a direction the
+        # geometry leaves unobservable (degenerate_axes) is not a jump, it is uninformative.
+        verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
+                                   res.T_sensor_target, None)
         if verdict.good:
             cov = self._measurement_cov(res)
             upd = f.update(t_ref, res.T_sensor_target, cov)
@@ -428,7 +432,7 @@ class TriDAR:
                 # overconfident filter. After a few such frames, restart the filter on the
                 # measurements (keeping the rates) rather than dropping a good track.
                 self._gate_rejects += 1
-                if self._gate_rejects >= self.pc.filter_reinit_frames:
+                if self._gate_rejects >= self.pc.filter_reinit_frames and not res.degenerate_axes:
                     v_origin = f.target_state()[1]
                     f.initialize(t_ref, res.T_sensor_target, cov, velocity=v_origin, omega=f.w)
                     self.stats.filter_reinits += 1

@@ -1047,11 +1047,23 @@ def _finish(
         res.n_inliers = n_in
         res.fitness = n_in / max(n, 1)
         return res
+    # The bound is computed pivoting on the centre of the observed surface and judged against
+    # that patch's own size, then moved to the target origin exactly. Judging observability about
+    # a far origin (or against the whole target's size) would call a 1 m patch seen 12 m from
+    # the centre of mass "rotation-degenerate" and, by capping axes at that pivot, throw away
+    # the position information the patch does carry.
+    foot_s = m.foot @ R.T + t
+    c = foot_s.mean(axis=0)
     H = information_matrix(
-        m.foot @ R.T + t, m.normal @ R.T, sig[m.sel], D[m.sel], t, cfg.noise_floor_fraction,
+        foot_s, m.normal @ R.T, sig[m.sel], D[m.sel], c, cfg.noise_floor_fraction,
         _model_sigma(mc, cfg),
     )
-    cov, degenerate = covariance_from_information(H, mc.radius, cfg.degeneracy_ratio)
+    patch = max(float(np.sqrt(np.mean(np.sum((foot_s - c) ** 2, axis=1)))), 0.05)
+    cov_c, degenerate = covariance_from_information(H, patch, cfg.degeneracy_ratio)
+    J = np.eye(6)
+    J[:3, 3:] = -skew(t - c)  # origin shift of a rotation about c: rho_o = rho_c + phi x (t - c)
+    cov = J @ cov_c @ J.T
+    cov = 0.5 * (cov + cov.T)
     return RegistrationResult(
         T_sensor_target=T,
         fitness=n_in / n,

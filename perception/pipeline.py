@@ -225,9 +225,11 @@ class TriDAR:
     def _scan(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud:
         if isinstance(scene, PointCloud):
             return scene
+        # Faults are indexed by the sensor's nominal frame slots (time), not by processed frames:
+        # a 30-frame blackout lasts 30 / frame_rate seconds whatever the modes' processing times.
         cloud = self.sensor.scan(
             self.target, scene.T_sensor_target, pattern, self.rng, motion=scene.motion, t0=t,
-            frame_index=self.frame_index,
+            frame_index=int(round(t * self.pc.frame_rate_hz)),
         )
         return cloud
 

@@ -136,3 +136,44 @@ def test_pipeline_is_deterministic_for_a_seed() -> None:
         hist = _run(tri, fly, 12, hook=lambda k, t, tri=tri, fly=fly: tri.seed_pose(fly.T(t), t) if k == 0 else None)
         runs.append(np.concatenate([np.r_[sv.position, sv.quaternion, sv.velocity, sv.range] for _, sv in hist]))
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_pah_acquisition_blackout_loss_and_automatic_reacquisition() -> None:
+    """bearing -> search (PAH) -> tracking; a 30-frame blackout loses the track; it comes back."""
+    cfg = load_config(
+        "final_approach", sensor__faults__blackout_start_frame=25, sensor__faults__blackout_frames=30,
+        sensor__faults__dropout_prob=0.05, sensor__faults__spurious_prob=0.01,
+    )
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(3))
+    fly = Fly(approach_pose(cfg, target, 22.0, lateral=(0.2, 0.1)), v=(0.0, 0.0, -0.05))
+    hist = _run(tri, fly, 110)
+    kinds = [(e.source, e.target) for e in tri.logic.events]
+    assert kinds[0] == (Mode.BEARING, Mode.SEARCH)
+    assert (Mode.SEARCH, Mode.TRACKING) in kinds
+    assert tri.stats.losses >= 1  # the blackout dropped the track ...
+    lost_at = next(e.t for e in tri.logic.events if "loss of track" in e.reason)
+    assert any(e.t > lost_at and e.target == Mode.TRACKING for e in tri.logic.events)  # ... and it recovered
+    t, sv = hist[-1]
+    assert sv.mode == Mode.TRACKING and sv.valid.position
+    dt_err, dr_err = pose_error(sv.T_sensor_target, fly.T(t))
+    assert dt_err < 0.05 and dr_err < 0.5
+    # During the blackout nothing stale is published as valid.
+    blind = [sv for tt, sv in hist if 25 * 0.2 + 1.0 < tt < 55 * 0.2]
+    assert blind and not any(sv.valid.position for sv in blind)
+
+
+def test_corridor_validation_rejects_a_pose_outside_it() -> None:
+    """An external seed of a pose outside the approach corridor is not allowed into tracking."""
+    cfg = load_config("final_approach", pipeline__corridor__attitude_tolerance_deg=10.0)
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(4))
+    # The true pose is 40 deg off the nominal approach attitude: outside the corridor.
+    T_true = approach_pose(cfg, target, 20.0) @ make_T(Rotation.from_euler("y", 40, degrees=True).as_matrix())
+    fly = Fly(T_true)
+    hist = _run(tri, fly, 12, hook=lambda k, t: tri.seed_pose(fly.T(t), t) if k in (0, 6) else None)
+    assert all(sv.mode != Mode.TRACKING for _, sv in hist)
+    assert tri.stats.rejected_candidates >= 1
+    assert not any(sv.valid.position for _, sv in hist)

@@ -125,13 +125,13 @@ def run_episode(
         if mode == "tracking" and prev_mode != "tracking":
             acquisitions += 1
         prev_mode = mode
-        pos_err.append(info["estimate_position_error_m"])
-        att_err.append(info["estimate_attitude_error_deg"])
+        pos_err.append(info.get("estimate_position_error_m", float("nan")))
+        att_err.append(info.get("estimate_attitude_error_deg", float("nan")))
         if keep_log:
             r, v, c = info["truth_r_lvlh"], info["truth_v_lvlh"], info["contact"]
             row = (
                 info["t"], mode, float(np.linalg.norm(info["truth_T_sensor_target"][:3, 3])),
-                *r, *v, info["estimate_position_error_m"], info["estimate_attitude_error_deg"],
+                *r, *v, info.get("estimate_position_error_m", float("nan")), info.get("estimate_attitude_error_deg", float("nan")),
                 info["n_points"], float(reward), info["propellant_kg"], info["delta_v"],
                 *np.asarray(action[:3], dtype=float), c.axial_distance, c.lateral_offset,
                 c.closing_speed,

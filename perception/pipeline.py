@@ -40,7 +40,7 @@ FloatArray = npt.NDArray[np.float64]
 __all__ = ["TriDAR", "PipelineStats", "nominal_attitude", "approach_pose", "deskew"]
 
 #: Points a frame needs for a bearing fix and for a registration.
-MIN_BEARING_POINTS = 5
+MIN_BEARING_POINTS = 3
 MIN_REGISTRATION_POINTS = 12
 R_PORT_DOCK = np.diag([1.0, -1.0, -1.0])
 
@@ -254,9 +254,9 @@ class TriDAR:
             sample_rate_hz=sc.sample_rate_hz, max_accel_rad_s2=sc.max_mirror_accel_rad_s2,
         )
 
-    def _bearing_fix(self, cloud: PointCloud, t: float) -> _Output:
+    def _bearing_fix(self, cloud: PointCloud, t: float, min_points: int = MIN_BEARING_POINTS) -> _Output:
         """Centroid bearing and filtered range from a cloud (any mode)."""
-        if len(cloud) < MIN_BEARING_POINTS:
+        if len(cloud) < min_points:
             return _Output(t, self.logic.mode, "none", t, len(cloud))
         c = cloud.points.mean(axis=0)
         r = np.linalg.norm(cloud.points, axis=1)
@@ -274,14 +274,21 @@ class TriDAR:
         )
 
     def _bearing_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
-        cloud = self._scan(scene, t, self._full_field())
+        # Full field until a fix; then the scan is steered onto the last fix (a small, far target
+        # gets a handful of the full-field samples, and every sample once steered).
+        recent = self._bearing is not None and t - self._bearing[1] <= 5.0
+        cloud = self._scan(scene, t, self._search_pattern() if recent else self._full_field())
+        if recent and len(cloud) < MIN_BEARING_POINTS:
+            self._bearing = None  # lost it: back to the full field next frame
         self.last_cloud = cloud
-        out = self._bearing_fix(cloud, t)
+        # In the full field a single return already gives a direction to steer onto; the steered
+        # scans that follow must then confirm it with MIN_BEARING_POINTS returns.
+        out = self._bearing_fix(cloud, t, MIN_BEARING_POINTS if recent else 1)
         self.busy_until = cloud.t_end + self.pc.bearing_latency_s
         out.available_t = self.busy_until
         self._outputs.append(out)
         self.logic.after_bearing(
-            t, out.range_m if out.kind == "bearing" else None, len(cloud), MIN_REGISTRATION_POINTS
+            t, out.range_m if out.kind == "bearing" else None, len(cloud), MIN_BEARING_POINTS
         )
         if self.logic.mode == Mode.SEARCH:
             self._search_started = t

@@ -351,18 +351,23 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
             truth_v_lvlh=w.state[3:].copy(),
             truth_T_sensor_target=truth.T_sensor_target,
             contact=c,
-            estimate_position_error_m=pos_err,
-            estimate_attitude_error_deg=att_err,
             propellant_kg=w.mass.propellant_kg,
             delta_v=w.delta_v,
             n_points=sv.n_points,
         )
+        # Estimation errors only when there is an estimate (NaN in info would break equality
+        # checks such as Gymnasium's determinism test); consumers use .get(key, nan).
+        if sv.valid.position:
+            info["estimate_position_error_m"] = pos_err
+        if sv.valid.attitude:
+            info["estimate_attitude_error_deg"] = att_err
         return info
 
     def _log(self, info: dict[str, Any]) -> None:
         self.history.append({
             "t": info["t"], "r": info["truth_r_lvlh"], "mode": info["mode"],
-            "pos_err": info["estimate_position_error_m"], "att_err": info["estimate_attitude_error_deg"],
+            "pos_err": info.get("estimate_position_error_m", float("nan")),
+            "att_err": info.get("estimate_attitude_error_deg", float("nan")),
             "est_r": self._estimated_chaser_lvlh(),
         })
 

@@ -231,3 +231,42 @@ def test_sb3_subproc_vec_env_pickles() -> None:
     obs, r, done, _ = venv.step(np.zeros((2, 3), dtype=np.float32))
     assert obs.shape == (2, OBS_DIM) and np.all(np.isfinite(obs))
     venv.close()
+
+
+@pytest.mark.slow
+def test_checkers_pass_on_the_full_tridar_pipeline() -> None:
+    """The default perception (the TriDAR pipeline) passes both checkers too."""
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make("TriDAR/FinalApproach-v0")
+    assert env.unwrapped.cfg.env.perception == "tridar"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+        sb3_check_env(env.unwrapped, warn=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", ["TriDAR/FinalApproach-v0", "TriDAR/TumblingTarget-v0"])
+def test_closed_loop_on_the_full_pipeline_is_finite_and_deterministic(env_id: str) -> None:
+    """A short closed-loop run on the full pipeline: no NaN, valid tracking, same seed same run."""
+    from agents.controllers import make_controller
+
+    runs = []
+    for _ in range(2):
+        env = gym.make(env_id)
+        ctl = make_controller("sync" if env.action_space.shape == (6,) else "glideslope", env.unwrapped.cfg)
+        obs, _ = env.reset(seed=11)
+        out = [obs]
+        modes = []
+        for _ in range(60):
+            obs, r, term, trunc, info = env.step(ctl(obs))
+            assert np.all(np.isfinite(obs)) and np.isfinite(r)
+            out.append(obs)
+            modes.append(info["mode"])
+            if term or trunc:
+                break
+        runs.append(np.array(out))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert "tracking" in modes

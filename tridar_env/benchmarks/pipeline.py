@@ -135,9 +135,10 @@ def replay(sc: Scenario, seed: int) -> dict:
     """Fly one scenario open loop; collect per-frame errors and pipeline statistics."""
     cfg = sc.cfg
     if sc.fault_frames is not None:
-        cfg = load_config(None, **_flat(cfg.model_dump(mode="json")),
-                          sensor__faults__blackout_start_frame=sc.fault_frames[0],
-                          sensor__faults__blackout_frames=sc.fault_frames[1])
+        flat = _flat(cfg.model_dump(mode="json"))
+        flat.update(sensor__faults__blackout_start_frame=sc.fault_frames[0],
+                    sensor__faults__blackout_frames=sc.fault_frames[1])
+        cfg = load_config(None, **flat)
     tri = TriDAR(cfg, sc.target)
     tri.reset(np.random.default_rng(seed))
     dt = 1.0 / cfg.pipeline.frame_rate_hz

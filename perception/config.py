@@ -61,6 +61,7 @@ __all__ = [
     "load_yaml",
     "save_config",
     "apply_overrides",
+    "flatten_overrides",
     "shipped_configs",
 ]
 
@@ -530,6 +531,18 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
             node[leaf] = apply_overrides(node[leaf], value)
         else:
             node[leaf] = value
+    return out
+
+
+def flatten_overrides(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mapping -> ``{"a__b__c": value}`` overrides (the inverse of :func:`apply_overrides`)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}__{k}" if prefix else k
+        if isinstance(v, dict):
+            out.update(flatten_overrides(v, key))
+        else:
+            out[key] = v
     return out
 
 

@@ -50,6 +50,7 @@ from perception.registration import (
     ModelCloud,
     RegistrationResult,
     icp,
+    per_point_sigma,
     prepare_model,
     validate_points,
 )
@@ -605,7 +606,7 @@ class PAHDatabase:
                 f"PAH database of {self.target_name!r} has no target; pass target= to load() or "
                 "call attach(target)"
             )
-        sig_all = _sigma_array(sigma, P_all.shape[0])
+        sig_all = per_point_sigma(sigma, P_all.shape[0])
         ok = np.all(np.isfinite(P_all), axis=1) & np.isfinite(sig_all)
         P = np.ascontiguousarray(P_all[ok])
         sig = sig_all[ok]
@@ -846,25 +847,6 @@ def _pick_polygon(
     a, b = np.unravel_index(int(np.argmax(d)), d.shape)
     rest = [i for i in range(n_poly) if i not in (a, b)]
     return idx[[a, b, *rest]]
-
-
-def _sigma_array(sigma: float | npt.ArrayLike | None, n: int) -> FloatArray:
-    if sigma is None:
-        return np.full(n, 0.01)
-    try:
-        s = np.asarray(sigma, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"sigma={sigma!r}; expected a float or (N,) array [m]") from None
-    if s.ndim == 0:
-        if not (np.isfinite(s) and s > 0):
-            raise ValueError(f"sigma={float(s)}; expected a finite range noise > 0 [m]")
-        return np.full(n, float(s))
-    s = s.reshape(-1)
-    if s.shape[0] != n:
-        raise ValueError(f"sigma has {s.shape[0]} values for {n} points; expected a float or (N,)")
-    if np.any(s[np.isfinite(s)] <= 0):
-        raise ValueError("sigma has values <= 0; expected per-point range noise > 0 [m]")
-    return s
 
 
 def _check_layout(path: Path, a: dict[str, np.ndarray]) -> None:

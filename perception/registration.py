@@ -502,10 +502,14 @@ def validate_points(points: npt.ArrayLike, name: str = "points") -> FloatArray:
     return P
 
 
-def _per_point_sigma(sigma: float | npt.ArrayLike | None, n: int) -> FloatArray:
+def per_point_sigma(sigma: float | npt.ArrayLike | None, n: int) -> FloatArray:
+    """(n,) range-noise sigmas [m] from None (1 cm), a float or an (n,) array; ValueError if bad."""
     if sigma is None:
         return np.full(n, 0.01)
-    s = np.asarray(sigma, dtype=np.float64)
+    try:
+        s = np.asarray(sigma, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"sigma={sigma!r}; expected a float or (N,) array [m]") from None
     if s.ndim == 0:
         if not (np.isfinite(s) and s > 0):
             raise ValueError(f"sigma={float(s)}; expected a finite range noise > 0 [m]")
@@ -842,7 +846,7 @@ def icp(
         raise ValueError(f"model is a {type(model).__name__}; expected a TargetModel or ModelCloud")
     T = check_rigid(init_T_sensor_target, "init_T_sensor_target").copy()
     P_all = validate_points(points, "points")
-    sig_all = _per_point_sigma(sigma, P_all.shape[0])
+    sig_all = per_point_sigma(sigma, P_all.shape[0])
     D_all = _directions(directions, P_all)
     ok = (
         np.all(np.isfinite(P_all), axis=1)

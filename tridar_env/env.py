@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 from gymnasium import spaces
 
-from perception.config import MissionConfig, load_config
+from perception.config import MissionConfig, flatten_overrides, load_config
 from perception.geometry import invert, matrix_to_quat
 from perception.state import Mode, StateVector
 from perception.targets import TargetModel, load_target
@@ -53,22 +53,11 @@ def observation_slices() -> dict[str, slice]:
 def _resolve_config(config: str | Path | MissionConfig | dict[str, Any] | None, **overrides: Any) -> MissionConfig:
     if isinstance(config, MissionConfig):
         if overrides:
-            return load_config(None, **{**_flatten(config.model_dump(mode="json")), **overrides})
+            return load_config(None, **{**flatten_overrides(config.model_dump(mode="json")), **overrides})
         return config
     if isinstance(config, dict):
         return load_config(None, **{**config, **overrides})
     return load_config(config, **overrides)
-
-
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}__{k}" if prefix else k
-        if isinstance(v, dict):
-            out.update(_flatten(v, key))
-        else:
-            out[key] = v
-    return out
 
 
 def _make_target(cfg: MissionConfig) -> TargetModel:

@@ -26,7 +26,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from perception.config import MissionConfig, load_config
+from perception.config import MissionConfig, flatten_overrides, load_config
 from perception.geometry import invert, make_T, pose_error
 from perception.pipeline import TriDAR, approach_pose
 from perception.sensors.motion import RelativeMotion
@@ -62,15 +62,19 @@ def vbar(quick: bool) -> Scenario:
     target = load_target(cfg.target.name)
     r0 = 60.0 if quick else 300.0
     k, c = 0.002, 25.0  # closing speed 0.05 + 0.002 r [m/s]: 0.65 m/s at 300 m, 0.07 m/s at 10 m
-    t_end = np.log((r0 + c) / (1.0 + c)) / k
+    t_end = np.log((r0 + c) / (0.05 + c)) / k  # to 5 cm from contact
 
     def rng_at(t: float) -> float:
         return (r0 + c) * np.exp(-k * t) - c
 
+    ch = cfg.dynamics.chaser
+    # The port seen from the chaser's TriDAR mount: the docking axis is offset from the sensor.
+    off = np.asarray(ch.dock_position_m) - np.asarray(ch.sensor_position_m)
+
     def pose(t: float) -> FloatArray:
-        r = rng_at(t)
-        lat = (0.3 * np.sin(0.01 * t), 0.2 * np.cos(0.013 * t))
-        return approach_pose(cfg, target, r, lat)
+        r = rng_at(t)  # docking-plane-to-port distance [m]
+        lat = (off[0] + 0.3 * np.sin(0.01 * t), off[1] + 0.2 * np.cos(0.013 * t))
+        return approach_pose(cfg, target, r + off[2], lat)
 
     n_frames = int(t_end / 0.2)
     return Scenario("vbar", cfg, target, float(t_end), pose, (int(0.6 * n_frames), 30))
@@ -135,7 +139,7 @@ def replay(sc: Scenario, seed: int) -> dict:
     """Fly one scenario open loop; collect per-frame errors and pipeline statistics."""
     cfg = sc.cfg
     if sc.fault_frames is not None:
-        flat = _flat(cfg.model_dump(mode="json"))
+        flat = flatten_overrides(cfg.model_dump(mode="json"))
         flat.update(sensor__faults__blackout_start_frame=sc.fault_frames[0],
                     sensor__faults__blackout_frames=sc.fault_frames[1])
         cfg = load_config(None, **flat)
@@ -166,17 +170,6 @@ def replay(sc: Scenario, seed: int) -> dict:
             rec["rate_err"].append(np.nan)
             rec["valid"].append(False)
     return {"rec": {k: np.asarray(v) for k, v in rec.items()}, "tri": tri, "dt": dt, "scenario": sc}
-
-
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}__{k}" if prefix else k
-        if isinstance(v, dict):
-            out.update(_flat(v, key))
-        else:
-            out[key] = v
-    return out
 
 
 def _recoveries(result: dict) -> tuple[int, int, list[float]]:

@@ -704,7 +704,7 @@ def summarize(df: Any) -> dict[str, Any]:
 
 def format_summary(summary: dict[str, Any], title: str | None = None) -> str:
     """The summary as a two-column text table (the same for campaigns and ``evaluate``)."""
-    from tridar_env.benchmarks.timing import format_table
+    from agents.benchmarks.timing import format_table
 
     s = summary
     causes = ", ".join(f"{c} {v}" for c, v in sorted(s["causes"].items())) or "-"

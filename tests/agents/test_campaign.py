@@ -29,7 +29,7 @@ from agents.controllers import make_controller
 from agents.episode import wilson_interval
 from agents.glideslope import GlideslopeController
 from perception.config import CONFIG_DIR, ConfigError, load_config
-from tridar_env.cli import main
+from agents.cli import main
 
 # Short runs: the chaser starts 4-6 m from the port, and 120 steps (24 s) cap every run.
 TINY = {
@@ -243,8 +243,8 @@ def test_summary_success_rate_and_wilson_interval():
 # ---------------------------------------------------------------------------------------------
 # Bad input: one error line, non-zero exit, nothing written
 # ---------------------------------------------------------------------------------------------
-# ``python -m tridar_env.cli`` would register the subcommands on a second copy of the module.
-CLI = [sys.executable, "-c", "import sys; from tridar_env.cli import main; sys.exit(main())"]
+# ``python -m agents.cli`` would register the subcommands on a second copy of the module.
+CLI = [sys.executable, "-c", "import sys; from agents.cli import main; sys.exit(main())"]
 
 
 def _free_port() -> int:

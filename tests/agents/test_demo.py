@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from agents.report import LOG_FIELDS, format_summary, mode_timeline, write_video
-from tridar_env.cli import main
+from agents.cli import main
 
 PNGS = ("trajectory.png", "errors_vs_range.png", "modes.png", "contact.png")
 

@@ -20,7 +20,7 @@ from agents.training import (
     train,
 )
 from perception.config import CONFIG_DIR, load_config
-from tridar_env.cli import main
+from agents.cli import main
 from tridar_env.env import OBS_DIM
 
 TINY = {

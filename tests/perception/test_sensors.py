@@ -395,7 +395,7 @@ def test_pointcloud_container() -> None:
 
 
 def test_scan_command_writes_ply_and_png(tmp_path, capsys) -> None:
-    from tridar_env.cli import main
+    from agents.cli import main
 
     out = tmp_path / "scan.ply"
     assert main(["scan", "--target", "cygnss", "--range", "20", "--pattern", "rosette",

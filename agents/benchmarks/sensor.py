@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tridar_env.benchmarks.timing import Timing
+from agents.benchmarks.timing import Timing
 
 if TYPE_CHECKING:
     from perception.sensors import FlashLidar, TriDARSensor
@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.config import FlashLidarConfig, SensorConfig
     from perception.sensors import FlashLidar, TriDARSensor
     from perception.targets import load_target
-    from tridar_env.benchmarks.timing import format_table
+    from agents.benchmarks.timing import format_table
 
     sensor = TriDARSensor(SensorConfig())
     flash = FlashLidar(FlashLidarConfig())

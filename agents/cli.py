@@ -1,6 +1,6 @@
 """The ``tridar-env`` command line.
 
-Each subcommand lives in its own module under :mod:`tridar_env.commands` and registers itself with
+Each subcommand lives in its own module under :mod:`agents.commands` and registers itself with
 :func:`command`; heavy imports happen inside the handlers so that ``tridar-env --help`` stays fast.
 """
 
@@ -31,7 +31,7 @@ def command(name: str, help_text: str) -> Callable[[AddFn], AddFn]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tridar_env import commands
+    from agents import commands
 
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         importlib.import_module(f"{commands.__name__}.{info.name}")
@@ -61,8 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    # Run the registry of the importable module (subcommands register on ``tridar_env.cli``,
-    # not on ``__main__``), so ``python -m tridar_env.cli`` sees every command.
-    from tridar_env.cli import main as _main
+    # Run the registry of the importable module (subcommands register on ``agents.cli``,
+    # not on ``__main__``), so ``python -m agents.cli`` sees every command.
+    from agents.cli import main as _main
 
     raise SystemExit(_main())

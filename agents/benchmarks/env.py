@@ -13,7 +13,7 @@ import numpy as np
 from gymnasium.utils.performance import benchmark_step, benchmark_vector_step
 
 import tridar_env  # noqa: F401  (registers the ids)
-from tridar_env.benchmarks.timing import format_table
+from agents.benchmarks.timing import format_table
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

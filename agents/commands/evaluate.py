@@ -7,7 +7,7 @@ import json
 import os
 from pathlib import Path
 
-from tridar_env.cli import command
+from agents.cli import command
 
 
 @command("evaluate", "run a saved SB3 policy for N episodes on any id and perception mode")

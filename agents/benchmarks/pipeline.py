@@ -32,7 +32,7 @@ from perception.pipeline import TriDAR, approach_pose
 from perception.sensors.motion import RelativeMotion
 from perception.state import Mode, TruthScene
 from perception.targets import TargetModel, load_target
-from tridar_env.benchmarks.timing import format_table
+from agents.benchmarks.timing import format_table
 from tridar_env.dynamics import RigidBodyAttitude, spin_with_nutation
 
 FloatArray = npt.NDArray[np.float64]

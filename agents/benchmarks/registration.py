@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.sensors import TriDARSensor
     from perception.targets import load_target
 
-    from tridar_env.benchmarks.timing import Timing, format_table
+    from agents.benchmarks.timing import Timing, format_table
 
     frames = 10 if args.quick else int(args.frames)
     cases = [("cubesat", r) for r in (2.0, 5.0, 10.0)] + [("cygnss", r) for r in (5.0, 20.0, 50.0)]
@@ -254,7 +254,7 @@ def run_acquisition(args: argparse.Namespace) -> None:
     from perception.sensors import TriDARSensor
     from perception.targets import load_target
 
-    from tridar_env.benchmarks.timing import Timing, format_table
+    from agents.benchmarks.timing import Timing, format_table
 
     n_cases = 20 if args.quick else int(args.acq_cases)
     sensor = TriDARSensor(SensorConfig())

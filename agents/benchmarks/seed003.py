@@ -439,7 +439,7 @@ def run(args: argparse.Namespace) -> int:
 
     from perception.config import FlashLidarConfig, ICPConfig
     from perception.linetrack import seed003_icp_config
-    from tridar_env.benchmarks.timing import format_table
+    from agents.benchmarks.timing import format_table
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from tridar_env.cli import command
+from agents.cli import command
 
 
 @command("targets", "list the target library with envelopes, face counts and ports")

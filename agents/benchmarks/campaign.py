@@ -13,7 +13,7 @@ import argparse
 import os
 import time
 
-from tridar_env.benchmarks.timing import format_table
+from agents.benchmarks.timing import format_table
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -6,11 +6,11 @@ import argparse
 import importlib
 import pkgutil
 
-from tridar_env.cli import command
+from agents.cli import command
 
 
 def _benchmarks() -> list[str]:
-    from tridar_env import benchmarks
+    from agents import benchmarks
 
     return sorted(
         m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name not in {"timing"}
@@ -21,7 +21,7 @@ def _benchmarks() -> list[str]:
 def add(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="bench", metavar="NAME")
     for name in _benchmarks():
-        mod = importlib.import_module(f"tridar_env.benchmarks.{name}")
+        mod = importlib.import_module(f"agents.benchmarks.{name}")
         sp = sub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0])
         mod.add_arguments(sp)
         sp.set_defaults(handler=mod.run)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tridar_env.cli import command
+from agents.cli import command
 
 
 @command("campaign", "Monte Carlo campaign over dispersions on Dask (LocalCluster or --scheduler)")

@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from tridar_env.cli import command
+from agents.cli import command
 
 DEMO_ENV_ID = "TriDAR/FinalApproach-v0"
 CONTROLLERS = "glideslope | lqr | sync | sb3:<model.zip> | module:Class"

@@ -1,0 +1,1 @@
+"""Subcommands of ``tridar-env``; every module here registers itself with ``agents.cli.command``."""

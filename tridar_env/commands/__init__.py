@@ -1,1 +1,0 @@
-"""Subcommands of ``tridar-env``; every module here registers itself with ``tridar_env.cli.command``."""

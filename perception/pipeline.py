@@ -26,8 +26,8 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.filter import PoseFilter, RangeFilter
-from perception.geometry import make_T, matrix_to_quat
-from perception.modes import ModeLogic
+from perception.geometry import check_rigid, make_T, matrix_to_quat
+from perception.modes import FrameVerdict, ModeLogic
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
 from perception.scan_patterns import make_pattern, steer_to_region
@@ -179,10 +179,7 @@ class TriDAR:
 
     def seed_pose(self, T_sensor_target: npt.ArrayLike, t: float) -> None:
         """An external initial guess for search (GPS, ground, another sensor), valid at ``t``."""
-        T = np.asarray(T_sensor_target, dtype=np.float64)
-        from perception.geometry import check_rigid
-
-        self.external_seed = (float(t), check_rigid(T, "T_sensor_target").copy())
+        self.external_seed = (float(t), check_rigid(T_sensor_target, "T_sensor_target").copy())
 
     @property
     def mode(self) -> Mode:
@@ -407,10 +404,7 @@ class TriDAR:
         self.busy_until = cloud.t_end + self.pc.tracking_latency_s
         n = len(cloud)
         if n < MIN_REGISTRATION_POINTS:
-            verdict_good = False
             reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
-            from perception.modes import FrameVerdict
-
             lost = self.logic.record(t, FrameVerdict(False, reason))
             self._after_loss(lost, t)
             self._outputs.append(_Output(self.busy_until, self.logic.mode, "none", t, n))

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 
-from perception.geometry import invert, transform_points  # noqa: E402
+from perception.geometry import invert  # noqa: E402
 
 if TYPE_CHECKING:
     from tridar_env.env import DockingEnv

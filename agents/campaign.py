@@ -58,7 +58,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from perception.config import (
-    CONFIG_DIR,
+    config_path,
     ConfigError,
     MissionConfig,
     load_config,
@@ -296,9 +296,7 @@ def load_campaign(path: str | Path, **overrides: Any) -> CampaignConfig:
     Raises:
         ConfigError: a missing or malformed file, or a field, value or key that does not validate.
     """
-    p = Path(path)
-    if not p.suffix and not p.exists():
-        p = CONFIG_DIR / "campaigns" / f"{p}.yaml"
+    p = config_path(path, "campaigns")
     cfg = load_config(p, model=CampaignConfig, **overrides)
     validate_campaign(cfg, str(p))
     return cfg
@@ -351,7 +349,7 @@ def mission_config(cfg: CampaignConfig, overrides: dict[str, Any] | None = None)
     """The mission config of one run (the campaign's constants and ``overrides`` applied)."""
     from tridar_env.registration import ENV_IDS
 
-    path = cfg.mission or CONFIG_DIR / "missions" / f"{ENV_IDS[_bare_id(cfg.env_id)]}.yaml"
+    path = cfg.mission or config_path(ENV_IDS[_bare_id(cfg.env_id)])
     merged = {**cfg.config, **(overrides or {}), "env__perception": cfg.perception}
     return load_config(path, **merged)
 
@@ -448,7 +446,7 @@ def make_env(
     from tridar_env.registration import ENV_IDS
 
     ov = {k: v for k, v in (overrides or {}).items() if k.replace(".", "__") != "env__perception"}
-    path = mission or CONFIG_DIR / "missions" / f"{ENV_IDS[_bare_id(env_id)]}.yaml"
+    path = mission or config_path(ENV_IDS[_bare_id(env_id)])
     steps = load_config(path, **ov, env__perception=perception).env.max_episode_steps
     return gym.make(
         _bare_id(env_id), perception=perception, config=mission, max_episode_steps=steps, **ov

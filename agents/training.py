@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field
 
-from perception.config import CONFIG_DIR, ConfigError, MissionConfig, load_config, save_config
+from perception.config import ConfigError, MissionConfig, config_path, load_config, save_config
 
 __all__ = [
     "NormalizeConfig",
@@ -132,7 +132,7 @@ def _bare_id(env_id: str) -> str:
 def _mission_path(env_id: str, mission: str | None) -> Path:
     from tridar_env.registration import ENV_IDS
 
-    return Path(mission) if mission else CONFIG_DIR / "missions" / f"{ENV_IDS[_bare_id(env_id)]}.yaml"
+    return Path(mission) if mission else config_path(ENV_IDS[_bare_id(env_id)])
 
 
 def validate_training(cfg: TrainingConfig, source: str = "training config") -> MissionConfig:
@@ -171,9 +171,7 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
 
 def load_training(path: str | Path, **overrides: Any) -> TrainingConfig:
     """Read and validate a training YAML (a bare name is looked up in ``configs/training``)."""
-    p = Path(path)
-    if not p.suffix and not p.exists():
-        p = CONFIG_DIR / "training" / f"{p}.yaml"
+    p = config_path(path, "training")
     cfg = load_config(p, model=TrainingConfig, **overrides)
     validate_training(cfg, str(p))
     return cfg

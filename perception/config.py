@@ -57,6 +57,7 @@ __all__ = [
     "EnvConfig",
     "MissionConfig",
     "CONFIG_DIR",
+    "config_path",
     "load_config",
     "load_yaml",
     "save_config",
@@ -550,6 +551,14 @@ def _deep_copy(d: dict[str, Any]) -> dict[str, Any]:
     return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in d.items()}
 
 
+def config_path(path: str | Path, kind: str = "missions") -> Path:
+    """A YAML path as given, or a bare name (``"final_approach"``) looked up in ``configs/<kind>``."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        return CONFIG_DIR / kind / f"{p}.yaml"
+    return p
+
+
 def load_config(
     path: str | Path | None = None, model: type[M] = MissionConfig, **overrides: Any  # type: ignore[assignment]
 ) -> M:
@@ -567,9 +576,7 @@ def load_config(
     data: dict[str, Any] = {}
     source = "defaults"
     if path is not None:
-        p = Path(path)
-        if not p.suffix and not p.exists():
-            p = CONFIG_DIR / "missions" / f"{p}.yaml"
+        p = config_path(path)
         data = load_yaml(p)
         source = str(p)
     if overrides:

@@ -158,6 +158,7 @@ class TriDAR:
     def reset(self, rng: np.random.Generator) -> None:
         """Start-up: bearing mode, empty filters, fresh counters; ``rng`` drives the sensor and PAH."""
         self.rng = rng
+        self.external_seed = None
         self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2,
                                  ref_point=self.target.T_target_port[:3, 3])
         self.range_filter = RangeFilter(self.pc.process_noise_accel**2)

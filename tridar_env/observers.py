@@ -108,9 +108,6 @@ class TriDARObserver:
     def __init__(self, cfg: MissionConfig, target: TargetModel) -> None:
         from perception.pipeline import TriDAR  # the product's perception, built on first use
 
-        self._cls = TriDAR
-        self.cfg = cfg
-        self.target = target
         self.pipeline = TriDAR(cfg, target)
 
     @property
@@ -118,8 +115,7 @@ class TriDARObserver:
         return getattr(self.pipeline, "last_cloud", None)
 
     def reset(self, rng: np.random.Generator) -> None:
-        self.pipeline = self._cls(self.cfg, self.target)
-        self.pipeline.reset(rng)
+        self.pipeline.reset(rng)  # start-up state; the prepared model and PAH database are kept
 
     def observe(self, world: World, rng: np.random.Generator) -> StateVector:
         del rng  # the pipeline owns the generator handed to reset()

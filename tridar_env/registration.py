@@ -19,7 +19,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from perception.config import CONFIG_DIR, load_config
+from perception.config import config_path, load_config
 
 ENV_IDS: dict[str, str] = {
     "TriDAR/FinalApproach-v0": "final_approach",
@@ -34,7 +34,7 @@ def make_mission_env(mission: str, config: Any = None, **kwargs: Any) -> Any:
 
     if config is None or isinstance(config, dict):
         overrides = dict(config or {})
-        return DockingEnv(CONFIG_DIR / "missions" / f"{mission}.yaml", **overrides, **kwargs)
+        return DockingEnv(config_path(mission), **overrides, **kwargs)
     return DockingEnv(config, **kwargs)
 
 
@@ -43,7 +43,7 @@ def register_envs() -> None:
     for env_id, mission in ENV_IDS.items():
         if env_id in gym.registry:
             continue
-        steps = load_config(CONFIG_DIR / "missions" / f"{mission}.yaml").env.max_episode_steps
+        steps = load_config(config_path(mission)).env.max_episode_steps
         gym.register(
             id=env_id,
             entry_point="tridar_env.registration:make_mission_env",

@@ -19,10 +19,18 @@ SVD; matches that are mirror images, that show back faces to the sensor or (cons
 that fall outside the approach corridor are dropped before any fit check. The survivors are
 scored by a surface-fit precheck on a decimated scan (an occupancy grid of the voxels near the
 model surface, O(1) per point), the best few by the full O(n) check against the dense model's
-KD-tree, and the distinct best ones are polished by a short ICP and scored on the whole scan (so a
-near-symmetric alternative competes instead of the first fit winning). More polygons are tried
-until a hypothesis fits ``accept_fitness`` of the scan, or the polygon or time budget runs out;
-the winner is refined by a full ICP.
+KD-tree, and the distinct best ones are polished by a short ICP and verified on the whole scan.
+
+Verification (Figure 2's fit check, plus free space): besides the surface fit, every scan ray is
+cast against the model under the hypothesis (one Embree call for all hypotheses); a point measured
+behind the model surface along its ray is impossible under that pose. This is what tells a long
+body such as CYGNSS from its half-turn flip, which fits the visible points as well. The leading
+hypothesis is always verified against its near-symmetric alternatives (the turns that map the
+model nearly onto itself, found once per target), so the flip competes even when no polygon
+produced it. More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
+with (almost) no free-space violation, or the polygon or time budget runs out; the winner is
+refined by a full ICP and a small basin hop (sparse, noisy scans leave shallow ICP minima a few
+degrees off).
 
 Constrained search (section 5.3, the docking case): a :class:`PoseConstraint` bounds the attitude
 about a nominal one and the position to a cone about the boresight and a range interval. Because
@@ -54,6 +62,7 @@ from perception.registration import (
     prepare_model,
     validate_points,
 )
+from perception.sensors.raycast import cast_rays
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -202,19 +211,25 @@ def _ragged(starts: IntArray, ends: IntArray) -> tuple[IntArray, IntArray]:
     return owner, starts[owner] + pos
 
 
-def _kabsch_batch(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _kabsch_batch(
+    S: FloatArray, Q: FloatArray | None, Qk: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
     """Batched rigid fits ``Q ~= R S_k + t`` (eq. 1) of model polygons to one scan polygon.
 
     Args:
         S: (K, N, 3) model polygons [m], target frame.
-        Q: (N, 3) scan polygon [m], sensor frame.
+        Q: (N, 3) scan polygon [m], sensor frame (or None with ``Qk``).
+        Qk: (K, N, 3) one target point set per fit instead of ``Q``.
 
     Returns:
         R (K, 3, 3) proper rotations and t (K, 3) [m].
     """
     cs = S.mean(axis=1)
-    cq = Q.mean(axis=0)
-    H = np.einsum("kni,nj->kij", S - cs[:, None, :], Q - cq)
+    if Qk is None:
+        assert Q is not None
+        Qk = np.broadcast_to(Q, S.shape)
+    cq = Qk.mean(axis=1)
+    H = np.einsum("kni,knj->kij", S - cs[:, None, :], Qk - cq[:, None, :])
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.einsum("kji,klj->kil", Vt, U)))
     d[d == 0] = 1.0
@@ -272,11 +287,36 @@ _ARRAY_KEYS = ("points", "normals", "seg_i", "seg_j", "seg_len", "bin_ptr", "dis
 
 @dataclass
 class _Hypothesis:
-    """A candidate pose after a short ICP, scored on the whole scan."""
+    """A candidate pose after a short ICP, verified on the whole scan (:meth:`PAHDatabase._verify`).
+
+    Attributes:
+        T: (4, 4) pose ``T_sensor_target``.
+        fitness: fraction of the scan points within their noise gate of the model surface.
+        likelihood: mean Gaussian likelihood of the point-to-plane residuals (0 for outliers).
+        free_space: fraction of the scan points measured behind the model surface along their
+            ray (the ray would have been stopped by the model first): impossible under this pose.
+        expanded: its near-symmetric alternatives have been verified too.
+    """
 
     T: FloatArray
     fitness: float
     likelihood: float
+    free_space: float
+    expanded: bool = False
+
+    @property
+    def score(self) -> float:
+        """Ranking score: likelihood, less a heavy price per unexplained or see-through point."""
+        return self.likelihood - _UNEXPLAINED_PENALTY * ((1.0 - self.fitness) + self.free_space)
+
+    def clean(self, accept_fitness: float, n_points: int) -> bool:
+        """Explains the scan: ``accept_fitness`` of it fits and (almost) nothing sees through it.
+
+        A few violations are tolerated (mixed returns at silhouettes): up to
+        ``_FREE_SPACE_ACCEPT`` of the scan, and at least ``_FREE_SPACE_ACCEPT_POINTS`` points.
+        """
+        allowed = max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / max(n_points, 1))
+        return self.fitness >= accept_fitness and self.free_space <= allowed
 
 
 class PAHDatabase:
@@ -569,9 +609,11 @@ class PAHDatabase:
         For each polygon: match it, fit a pose per match, drop mirror images, back-facing and
         (constrained) out-of-corridor poses, precheck the survivors on a decimated scan, check the
         best few on the whole scan, and polish the distinct best ones by a short ICP scored on the
-        whole scan (so that near-symmetric alternatives are compared, not the first one taken).
-        It stops when a hypothesis scores ``accept_fitness`` or the polygon or time budget is
-        spent; the best hypothesis is then refined by a full ICP.
+        whole scan, surface fit and free space (so that near-symmetric alternatives are
+        compared, not the first one taken); the leader's near-symmetric alternatives are
+        verified too. It stops when a verified leader scores ``accept_fitness`` with (almost) no
+        free-space violation, or the polygon or time budget is spent; the best hypothesis is
+        then refined by a full ICP and a basin hop.
 
         Args:
             points: (N, 3) scan points [m], sensor frame (non-finite rows are ignored).
@@ -640,6 +682,7 @@ class PAHDatabase:
         pre = P[rng.choice(n, size=min(n, int(cfg.precheck_points)), replace=False)]
         pre_a = pre[: max(10, int(cfg.precheck_points) // 4)]
         rays = P / rng_norm[:, None]
+        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
 
@@ -688,22 +731,23 @@ class PAHDatabase:
                                       distance_upper_bound=fit_thr)
             fit = np.isfinite(dist).reshape(top.size, n).mean(axis=1)
             order = np.argsort(-fit, kind="stable")
+            starts = []
             for j in order[:_SCREEN_PER_POLYGON]:
                 if fit[j] < 0.5 * fit[order[0]] or (best is not None and fit[j] < 0.5 * best.fitness):
                     break
-                T0 = np.eye(4)
-                T0[:3, :3], T0[:3, 3] = R[top[j]], t[top[j]]
-                if any(_same_pose(T0, h.T) for h in hyps):
-                    continue
-                res = icp(P, mc, T0, sigma=sig, config=screen_cfg)
-                h = _Hypothesis(res.T_sensor_target,
-                                *self._score(P, res.T_sensor_target, sig, score_thr, mc))
-                hyps.append(h)
-                if constraint is not None and not constraint.admits(h.T):
-                    continue
-                if best is None or h.likelihood > best.likelihood:
-                    best = h
-            if best is not None and best.fitness >= cfg.accept_fitness:
+                T0 = _pose(R[top[j]], t[top[j]])
+                if not any(_same_pose(T0, h.T) for h in hyps):
+                    starts.append(T0)
+            new = self._screen(scan, starts, hyps, mc, screen_cfg)
+            hyps += new
+            best = _best(hyps, constraint)
+            # Verify the leader against the poses it could be confused with (half turns of a
+            # long body, quarter turns of a square one): one of them may be the truth.
+            if best is not None and not best.expanded:
+                best.expanded = True
+                hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint)
+                best = _best(hyps, constraint)
+            if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
         if best is None:
             why = stop or (
@@ -716,10 +760,13 @@ class PAHDatabase:
         if not res.converged:
             # Slow convergence along a weakly observed direction: one more pass from where it got.
             res = icp(P, mc, res.T_sensor_target, sigma=sig)
+        res = self._hop(scan, res, mc, screen_cfg)
         notes = []
-        final_score, _ = self._score(P, res.T_sensor_target, sig, score_thr, mc)
-        if final_score < cfg.accept_fitness:
-            notes.append(f"fit score {final_score:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
+        final_fit, _, final_fs = self._verify(scan, res.T_sensor_target[None], mc)
+        if final_fit[0] < cfg.accept_fitness:
+            notes.append(f"fit score {final_fit[0]:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
+        if final_fs[0] > max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / n):
+            notes.append(f"{100 * final_fs[0]:.1f} % of the points lie behind the model surface")
         if constraint is not None and not constraint.admits(res.T_sensor_target):
             notes.append("refined pose outside the corridor")
         if notes:
@@ -728,6 +775,185 @@ class PAHDatabase:
             res.reason = res.reason or "ICP refinement did not converge"
         res.time_s = elapsed()
         return res
+
+    def _screen(
+        self,
+        scan: _Scan,
+        starts: list[FloatArray],
+        known: list[_Hypothesis],
+        mc: ModelCloud,
+        icp_cfg: ICPConfig,
+    ) -> list[_Hypothesis]:
+        """Short ICP from each start pose, then one batched verification of the distinct results."""
+        Ts: list[FloatArray] = []
+        for T0 in starts:
+            T = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg).T_sensor_target
+            if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
+                Ts.append(T)
+        if not Ts:
+            return []
+        fit, like, fs = self._verify(scan, np.stack(Ts), mc)
+        return [_Hypothesis(T, float(a), float(b), float(c)) for T, a, b, c in zip(Ts, fit, like, fs)]
+
+    def _alternatives(
+        self,
+        h: _Hypothesis,
+        scan: _Scan,
+        known: list[_Hypothesis],
+        mc: ModelCloud,
+        icp_cfg: ICPConfig,
+        constraint: PoseConstraint | None,
+    ) -> list[_Hypothesis]:
+        """The near-symmetric alternatives of a hypothesis, polished and verified.
+
+        Each alternative is ``h.T`` composed with a near-symmetry of the model; the raw poses are
+        verified in one batch, and those that fit at least half as well as ``h`` are polished by
+        the short ICP and verified again. They are not marked expanded: the alternatives of an
+        alternative that takes the lead are verified in turn (duplicates of known hypotheses are
+        dropped, so this ends).
+        """
+        G = self._near_symmetries()
+        if G.shape[0] == 0:
+            return []
+        Ts = np.einsum("ij,kjl->kil", h.T, G)
+        if constraint is not None:
+            # Loose: the short ICP may still pull a nearly admitted alternative inside.
+            Ts = Ts[constraint.attitude_ok(Ts[:, :3, :3], slack_rad=0.1)
+                    & constraint.position_ok(Ts[:, :3, 3], slack_m=0.1)]
+            if Ts.shape[0] == 0:
+                return []
+        fit, _, _ = self._verify(scan, Ts, mc, free_space=False)
+        order = np.argsort(-fit, kind="stable")[:_ALTERNATIVES_SCREENED]
+        starts = [Ts[i] for i in order if fit[i] >= 0.5 * h.fitness]
+        return self._screen(scan, starts, known, mc, icp_cfg)
+
+    def _hop(
+        self, scan: _Scan, res: RegistrationResult, mc: ModelCloud, icp_cfg: ICPConfig
+    ) -> RegistrationResult:
+        """Escape a shallow ICP minimum a few degrees from the truth (sparse, noisy scans).
+
+        The refined pose is turned by +-``_HOP_RAD`` about each sensor axis through the scan
+        centroid; each start gets the short ICP and all are verified together. If one scores
+        better than the refined pose, the full ICP is rerun from it.
+        """
+        T_f = res.T_sensor_target
+        c = scan.P.mean(axis=0)
+        starts = []
+        for axis in np.eye(3):
+            for sgn in (-1.0, 1.0):
+                Rk = _rotvec_matrix(sgn * _HOP_RAD * axis)
+                starts.append(_pose(Rk, c - Rk @ c) @ T_f)
+        Ts = [T_f] + [icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg).T_sensor_target
+                      for T0 in starts]
+        fit, like, fs = self._verify(scan, np.stack(Ts), mc)
+        score = like - _UNEXPLAINED_PENALTY * ((1.0 - fit) + fs)
+        k = int(np.argmax(score))
+        if k == 0 or score[k] <= score[0] + _HOP_MIN_GAIN:
+            return res
+        return icp(scan.P, mc, Ts[k], sigma=scan.sigma)
+
+    def _verify(
+        self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Surface fit and free-space test of K poses on the whole scan (vectorised).
+
+        Surface fit: each point, moved into the model frame, is an inlier when within its gate
+        ``scan.gate`` of a dense model sample; inliers add ``exp(-r^2 / 2 sigma^2)`` of their
+        point-to-plane residual ``r`` to the likelihood (it sees small features that a noise-wide
+        gate cannot). Free space: every scan ray is cast against the model under each pose (one
+        Embree call for all K poses); a point measured more than ``scan.margin`` beyond the first
+        model surface on its ray is impossible under that pose, since the surface would have
+        returned the pulse (or, specular or dark, absorbed it) before it got there.
+
+        Args:
+            scan: the scan bundle.
+            Ts: (K, 4, 4) poses ``T_sensor_target``.
+            mc: the dense model.
+            free_space: run the ray test (else its column is zero).
+
+        Returns:
+            fitness (K,), likelihood (K,) and free-space violation fraction (K,).
+        """
+        assert self.target is not None
+        n = scan.P.shape[0]
+        k = Ts.shape[0]
+        R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+        X = _to_model(scan.P, R, t)
+        d, j = mc.kdtree.query(X.reshape(-1, 3), k=1, distance_upper_bound=float(scan.gate.max()))
+        d, j = d.reshape(k, n), j.reshape(k, n)
+        inl = d <= scan.gate
+        jj = np.where(inl, j, 0)
+        r = np.einsum("kni,kni->kn", X - mc.points[jj], mc.normals[jj])
+        like = np.where(inl, np.exp(-0.5 * (r / scan.sigma) ** 2), 0.0).mean(axis=1)
+        fs = np.zeros(k)
+        if free_space:
+            origins = -np.einsum("ki,kij->kj", t, R)
+            dirs = np.einsum("ni,kij->knj", scan.rays, R).reshape(-1, 3)
+            _, r_model, _ = cast_rays(self.target, np.repeat(origins, n, axis=0), dirs)
+            r_model = r_model.reshape(k, n)
+            with np.errstate(invalid="ignore"):
+                behind = scan.ranges > r_model + scan.margin
+            fs = behind.mean(axis=1)
+        return inl.mean(axis=1), like, fs
+
+    def _near_symmetries(self) -> FloatArray:
+        """(S, 4, 4) rigid motions ``G`` of the target frame that nearly map the model onto itself.
+
+        Candidates are the 23 turns of the cube group about the centroid (quarter and half turns
+        about the axes, half turns about the face diagonals, third turns about the body
+        diagonals), in the frame of the principal axes of the surface and in the body frame; a
+        candidate is kept when it maps at least
+        ``_SYMMETRY_OVERLAP`` of the surface to within ``_SYMMETRY_GATE_M`` of the surface
+        (best first, at most ``_MAX_SYMMETRIES``). ``T @ G`` is then a pose a partial scan may
+        fit as well as ``T``. Cached on the target.
+        """
+        assert self.target is not None
+        mc = prepare_model(self.target, _DENSE_POINTS)
+
+        def build() -> FloatArray:
+            X = mc.points[:: max(1, mc.points.shape[0] // _SYMMETRY_SAMPLES)]
+            c = X.mean(axis=0)
+            _, V = np.linalg.eigh(np.cov((X - c).T))
+            V[:, 2] *= np.sign(np.linalg.det(V))
+            rots: list[FloatArray] = []
+            for F in (V, np.eye(3)):
+                for C in _CUBE_GROUP:
+                    Rk = F @ C @ F.T
+                    if np.trace(Rk) < _TURN_MIN_TRACE and all(
+                        np.sum(Rk * Q) < _TURN_MIN_TRACE for Q in rots
+                    ):
+                        rots.append(Rk)
+            G = np.stack([_pose(Rk, c - Rk @ c) for Rk in rots])
+            # A few point-to-point ICP steps: the turn that fits best need not be about the
+            # centroid (an off-centre wing moves it), nor exactly about the axis.
+            for _ in range(_SYMMETRY_ICP_STEPS):
+                Y = np.einsum("kij,nj->kni", G[:, :3, :3], X) + G[:, None, :3, 3]
+                _, j = mc.kdtree.query(Y.reshape(-1, 3), k=1)
+                Rs, ts = _kabsch_batch(np.broadcast_to(X, Y.shape), None,
+                                       mc.points[j].reshape(Y.shape))
+                G = np.stack([_pose(Ri, ti) for Ri, ti in zip(Rs, ts)])
+            Y = np.einsum("kij,nj->kni", G[:, :3, :3], X) + G[:, None, :3, 3]
+            d, _ = mc.kdtree.query(Y.reshape(-1, 3), k=1, distance_upper_bound=_SYMMETRY_GATE_M)
+            overlap = np.isfinite(d).reshape(len(rots), -1).mean(axis=1)
+            keep: list[int] = []
+            for i in np.argsort(-overlap, kind="stable"):
+                Ri = G[i, :3, :3]
+                # Distinct turns only (the steps may have slid two onto one, or back to identity).
+                if overlap[i] >= _SYMMETRY_OVERLAP and np.trace(Ri) < _TURN_MIN_TRACE and all(
+                    np.sum(Ri * G[k, :3, :3]) < _TURN_MIN_TRACE for k in keep
+                ):
+                    keep.append(int(i))
+            # With every turn its inverse: a leader a quarter turn off needs the opposite turn.
+            turns: list[FloatArray] = []
+            for Gi in G[keep[:_MAX_SYMMETRIES]]:
+                for Gj in (Gi, np.linalg.inv(Gi)):
+                    if all(np.sum(Gj[:3, :3] * U[:3, :3]) < _TURN_MIN_TRACE for U in turns):
+                        turns.append(Gj)
+            out = np.ascontiguousarray(np.stack(turns)) if turns else np.empty((0, 4, 4))
+            out.setflags(write=False)
+            return out
+
+        return self.target.cached(("pah_near_symmetries", self.model_hash), build)  # type: ignore[no-any-return]
 
     def _plausible(
         self,
@@ -748,25 +974,6 @@ class PAHDatabase:
             keep &= constraint.position_ok(t, slack_m=tol)
         return keep
 
-    @staticmethod
-    def _score(
-        P: FloatArray, T: FloatArray, sig: FloatArray, thr: FloatArray, mc: ModelCloud
-    ) -> tuple[float, float]:
-        """How well a pose fits the whole scan.
-
-        Returns:
-            The inlier fraction (points within ``thr`` (N,) [m] of a model sample) and the mean
-            Gaussian likelihood ``exp(-r^2 / 2 sigma^2)`` of the point-to-plane residuals ``r``
-            (0 for outliers). The first decides acceptance; the second ranks hypotheses: it sees
-            small features (a 5 cm star tracker) that a noise-wide inlier gate cannot.
-        """
-        X = (P - T[:3, 3]) @ T[:3, :3]
-        d, j = mc.kdtree.query(X, k=1, distance_upper_bound=float(thr.max()))
-        inl = d <= thr
-        r = np.einsum("ij,ij->i", X[inl] - mc.points[j[inl]], mc.normals[j[inl]])
-        like = np.exp(-0.5 * (r / sig[inl]) ** 2).sum() / P.shape[0]
-        return float(np.mean(inl)), float(like)
-
 
 # Candidates kept after the first (quarter-size) precheck, and sent on to the full check.
 _PRECHECK_KEEP = 256
@@ -774,6 +981,92 @@ _FULL_CHECK = 16
 # Distinct hypotheses per polygon polished by a short ICP, and that ICP's iterations.
 _SCREEN_PER_POLYGON = 3
 _SCREEN_ICP_ITERATIONS = 12
+# Free-space test: a point further than 3 sigma + this [m] behind the model surface along its
+# ray is a violation (the margin absorbs mixed returns of the beam footprint at silhouettes).
+_FREE_SPACE_MARGIN_M = 0.02
+# A hypothesis with more violations than this fraction of the scan is not accepted outright.
+_FREE_SPACE_ACCEPT = 0.02
+_FREE_SPACE_ACCEPT_POINTS = 3.5
+# Score price of an outlier or a free-space violation, in units of one point's likelihood (<= 1):
+# a missing or see-through point is evidence against the pose, not just a poorer fit.
+_UNEXPLAINED_PENALTY = 2.0
+# Near-symmetries: rotations of the model about its centroid that map at least this fraction of
+# its surface to within _SYMMETRY_GATE_M of itself; at most _MAX_SYMMETRIES are kept.
+_SYMMETRY_OVERLAP = 0.6
+_SYMMETRY_GATE_M = 0.05
+_MAX_SYMMETRIES = 10
+_SYMMETRY_SAMPLES = 600
+# Two rotations closer than ~25 deg (trace of R_a^T R_b above this) count as one turn.
+_TURN_MIN_TRACE = 1.0 + 2.0 * math.cos(math.radians(25.0))
+_SYMMETRY_ICP_STEPS = 6
+# Final basin hop: turn of each start [rad], and the score gain that makes a hop worth taking.
+_HOP_RAD = math.radians(3.0)
+_HOP_MIN_GAIN = 1e-3
+# Alternatives of a leader that get the short ICP (best raw fit first).
+_ALTERNATIVES_SCREENED = 4
+
+
+@dataclass(eq=False)
+class _Scan:
+    """The finite scan points of one :meth:`PAHDatabase.localize` call and what verification needs.
+
+    Attributes:
+        P: (n, 3) points [m], sensor frame.
+        sigma: (n,) range noise [m].
+        ranges: (n,) ``|P|`` [m].
+        rays: (n, 3) unit ray directions.
+        gate: (n,) inlier distance to the model surface [m] (noise plus model sampling).
+        margin: (n,) depth behind the model surface beyond which a point violates free space [m].
+    """
+
+    P: FloatArray
+    sigma: FloatArray
+    ranges: FloatArray
+    rays: FloatArray
+    gate: FloatArray
+    margin: FloatArray
+
+
+def _cube_group() -> FloatArray:
+    """(24, 3, 3) the rotations mapping a cube onto itself (signed permutations, det +1)."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            M = np.zeros((3, 3))
+            M[np.arange(3), perm] = 1.0 - 2.0 * np.asarray(signs)
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return np.stack(out)
+
+
+_CUBE_GROUP = _cube_group()
+
+
+def _rotvec_matrix(phi: FloatArray) -> FloatArray:
+    """Rotation matrix of a rotation vector [rad] (Rodrigues)."""
+    a = float(np.linalg.norm(phi))
+    if a < 1e-12:
+        return np.eye(3)
+    k = phi / a
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * (K @ K)
+
+
+def _pose(R: FloatArray, t: FloatArray) -> FloatArray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _best(hyps: list[_Hypothesis], constraint: PoseConstraint | None) -> _Hypothesis | None:
+    """Highest-scoring hypothesis (inside the corridor, if any); the first one on ties."""
+    best = None
+    for h in hyps:
+        if constraint is not None and not constraint.admits(h.T):
+            continue
+        if best is None or h.score > best.score:
+            best = h
+    return best
 
 
 def _to_model(P: FloatArray, R: FloatArray, t: FloatArray) -> FloatArray:

@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import CorridorConfig, PAHConfig, SensorConfig
 from perception.geometry import make_T, pose_error, transform_points
-from perception.pah import PAH_FORMAT_VERSION, PAHDatabase, PoseConstraint
+from perception.pah import PAH_FORMAT_VERSION, PAHDatabase, PoseConstraint, _Hypothesis, _Scan
+from perception.registration import icp, prepare_model
 from perception.sensors import TriDARSensor
 from perception.targets import TargetModel, load_target
 
@@ -211,12 +212,48 @@ def test_acquires_cubesat_from_random_poses(cubesat_db: PAHDatabase) -> None:
 
 
 def test_acquires_cygnss_from_random_poses(cygnss_db: PAHDatabase) -> None:
-    # CYGNSS is nearly symmetric under a half turn about its z axis: from some aspects the
-    # visible surfaces fit both poses to within the noise (and a single scan leaves ~100 points
-    # on the bus), so two misses of eight are allowed; the pipeline retries over frames.
+    # CYGNSS is nearly symmetric under half turns: from some aspects the visible surfaces fit
+    # the flipped pose as well as the true one, and only the free-space test and the verified
+    # near-symmetric alternatives tell them apart; ~100-300 points leave the final ICP at 2-4 deg
+    # now and then, so one miss of eight is allowed.
     errors = _acquire(cygnss_db, 8, seed=22)
-    assert _n_good(errors, 5.0) >= 6, errors
-    assert _n_good(errors) >= 5, errors
+    assert _n_good(errors, 5.0) >= 7, errors
+    assert _n_good(errors) >= 6, errors
+
+
+def test_free_space_check_rejects_half_turn_flip_of_cygnss(cygnss_db: PAHDatabase) -> None:
+    # A view where the pose turned by half a turn about the body x axis (the long axis), polished
+    # by ICP, fits every point and even has the higher surface likelihood: only the rays it
+    # would block tell it from the truth.
+    db = cygnss_db
+    mc = prepare_model(db.target)
+    rng = np.random.default_rng(3)
+    T = random_pose(rng)
+    cloud = scan(db.target, T, rng)
+    P = cloud.points
+    sig = np.broadcast_to(np.asarray(cloud.sigma, dtype=float), (len(P),))
+    r = np.linalg.norm(P, axis=1)
+    bundle = _Scan(P, sig, r, P / r[:, None], 3 * sig + mc.spacing, 3 * sig + 0.02)
+    T_true = icp(P, mc, T, sigma=sig).T_sensor_target
+    T_flip = icp(P, mc, T @ make_T(Rotation.from_rotvec([math.pi, 0, 0]).as_matrix()),
+                 sigma=sig).T_sensor_target
+    assert pose_error(T_flip, T)[1] > 175.0
+    fit, like, fs = db._verify(bundle, np.stack([T_true, T_flip]), mc)
+    assert fit[0] == 1.0 and fit[1] == 1.0
+    assert like[1] > like[0]  # the surface fit alone prefers the flip
+    assert fs[0] == 0.0  # no ray sees through the true pose
+    assert fs[1] > 0.03  # > 10 of ~260 points lie behind the flipped model's surface
+    h_true, h_flip = (_Hypothesis(T_true, fit[0], like[0], fs[0]),
+                      _Hypothesis(T_flip, fit[1], like[1], fs[1]))
+    assert h_true.score > h_flip.score + 0.05
+    assert h_true.clean(db.config.accept_fitness, len(P))
+    assert not h_flip.clean(db.config.accept_fitness, len(P))
+    # The flip is among the near-symmetries the localization verifies, and it finds the truth.
+    G = db._near_symmetries()
+    assert min(pose_error(T_true @ g, T_flip)[1] for g in G) < 5.0
+    res = db.localize(P, np.random.default_rng(0), sigma=cloud.sigma)
+    e_m, e_deg = pose_error(res.T_sensor_target, T)
+    assert e_m < 0.05 and e_deg < 2.0, (e_m, e_deg)
 
 
 def test_constrained_search_rejects_out_of_corridor_candidates(cubesat_db: PAHDatabase) -> None:

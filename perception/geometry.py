@@ -7,6 +7,8 @@ Hamilton, unit norm, with ``w >= 0``. Inside, rotations are ``scipy.spatial.tran
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
@@ -33,6 +35,11 @@ __all__ = [
     "kabsch",
     "pose_error",
     "rotation_angle",
+    "fast_cross",
+    "fast_quat_to_matrix",
+    "fast_matrix_to_quat",
+    "fast_invert",
+    "rotation_z",
 ]
 
 
@@ -269,3 +276,81 @@ def pose_error(T_est: npt.ArrayLike, T_true: npt.ArrayLike) -> tuple[float, floa
     dt = float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
     dR = B[:3, :3].T @ A[:3, :3]
     return dt, float(np.degrees(rotation_angle(dR)))
+
+
+# --------------------------------------------------------------------------------------------
+# Single-item fast paths. The functions above accept batches and validate; a per-step simulation
+# calls them on one 3-vector or one 3x3 matrix thousands of times a second, where numpy's generic
+# machinery (np.cross, scipy Rotation construction) costs 10-50 us a call. These do the same math
+# in plain floats for exactly one item and agree with the general functions to round-off (tests
+# compare them on random inputs).
+# --------------------------------------------------------------------------------------------
+
+
+def fast_cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``np.cross(a, b)`` for two (3,) float vectors."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def fast_quat_to_matrix(q_wxyz: FloatArray) -> FloatArray:
+    """(3, 3) rotation matrix of one scalar-first quaternion (normalised first, like
+    :func:`quat_to_matrix`).
+
+    Raises:
+        ValueError: on a zero or non-finite quaternion.
+    """
+    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64).reshape(4).tolist()
+    n2 = w * w + x * x + y * y + z * z
+    if not (n2 > 1e-24 and math.isfinite(n2)):
+        raise ValueError(f"quaternion {[w, x, y, z]} has zero or non-finite norm; expected a unit (w, x, y, z)")
+    s = 2.0 / n2
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    return np.array([
+        [1.0 - yy - zz, xy - wz, xz + wy],
+        [xy + wz, 1.0 - xx - zz, yz - wx],
+        [xz - wy, yz + wx, 1.0 - xx - yy],
+    ])
+
+
+def fast_matrix_to_quat(R: FloatArray) -> FloatArray:
+    """Canonical scalar-first quaternion (4,) of one proper rotation matrix (3, 3).
+
+    Shepperd's method (the branch SciPy's ``Rotation.from_matrix`` uses). Unlike SciPy it does not
+    re-orthogonalise a matrix that is off SO(3) by more than 1e-12; callers pass products of
+    rotations, orthonormal to round-off.
+    """
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    tr = r00 + r11 + r22
+    # Largest of (R00, R11, R22, trace), first one on ties (numpy argmax, as SciPy).
+    if r00 >= r11 and r00 >= r22 and r00 >= tr:
+        w, x, y, z = r21 - r12, 1.0 - tr + 2.0 * r00, r10 + r01, r20 + r02
+    elif r11 >= r22 and r11 >= tr:
+        w, x, y, z = r02 - r20, r01 + r10, 1.0 - tr + 2.0 * r11, r21 + r12
+    elif r22 >= tr:
+        w, x, y, z = r10 - r01, r02 + r20, r12 + r21, 1.0 - tr + 2.0 * r22
+    else:
+        w, x, y, z = 1.0 + tr, r21 - r12, r02 - r20, r10 - r01
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0.0:
+        n = -n
+    return np.array([w / n, x / n, y / n, z / n])
+
+
+def fast_invert(T: FloatArray) -> FloatArray:
+    """Inverse of one rigid (4, 4) transform (:func:`invert` for a single pose)."""
+    Rt = T[:3, :3].T
+    out = np.zeros((4, 4))
+    out[:3, :3] = Rt
+    out[:3, 3] = -(Rt @ T[:3, 3])
+    out[3, 3] = 1.0
+    return out
+
+
+def rotation_z(angle_rad: float) -> FloatArray:
+    """(3, 3) rotation by ``angle_rad`` about +z (``Rotation.from_rotvec([0, 0, angle])``)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -8,6 +8,6 @@ from tridar_env.env import OBSERVATION_STRUCTURE, DockingEnv
 from tridar_env.registration import ENV_IDS, register_envs
 
 __version__ = "0.1.0"
-__all__ = ["DockingEnv", "ENV_IDS", "OBSERVATION_STRUCTURE", "register_envs"]
+__all__ = ["ENV_IDS", "OBSERVATION_STRUCTURE", "DockingEnv", "register_envs"]
 
 register_envs()

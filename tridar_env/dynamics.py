@@ -28,12 +28,15 @@ Contents:
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
+
+from perception.geometry import fast_quat_to_matrix, rotation_z
 
 __all__ = [
     "G0",
@@ -93,7 +96,7 @@ def _finite_scalar(name: str, value: float) -> float:
         x = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name}={value!r} is not a real number") from None
-    if not np.isfinite(x):
+    if not math.isfinite(x):
         raise ValueError(f"{name}={value!r} must be finite")
     return x
 
@@ -115,11 +118,12 @@ def _non_negative(name: str, value: float) -> float:
 def _array(name: str, value: npt.ArrayLike, last: int, batch: bool) -> FloatArray:
     """Return ``value`` as float64 with trailing dimension ``last``; (last,) or (B, last)."""
     arr = np.asarray(value, dtype=np.float64)
-    ok_shape = arr.shape == (last,) or (batch and arr.ndim == 2 and arr.shape[1] == last)
+    shape = arr.shape
+    ok_shape = shape == (last,) or (batch and len(shape) == 2 and shape[1] == last)
     if not ok_shape:
         want = f"({last},)" + (f" or (B, {last})" if batch else "")
         raise ValueError(f"{name} has shape {arr.shape}; expected {want}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f"{name}={arr!r} contains non-finite values")
     return arr
 
@@ -725,22 +729,32 @@ class RigidBodyAttitude:
     def __init__(self, inertia: npt.ArrayLike) -> None:
         self.inertia = _inertia("inertia", inertia)
         self.inertia_inv = np.linalg.inv(self.inertia)
+        self._inertia_rows = self.inertia.tolist()
+        self._inertia_inv_rows = self.inertia_inv.tolist()
         self._torque = np.zeros(3)
 
     def _rhs(self, _t: float, y: FloatArray) -> FloatArray:
-        w0, x0, y0, z0 = y[0], y[1], y[2], y[3]
-        p, q, r = y[4], y[5], y[6]
-        omega = y[4:7]
-        omega_dot = self.inertia_inv @ (self._torque - np.cross(omega, self.inertia @ omega))
+        # Plain floats: the integrator calls this thousands of times on a 7-vector, where
+        # numpy's per-call overhead (np.cross above all) would be most of the cost.
+        w0, x0, y0, z0, p, q, r = y.tolist()
+        (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = self._inertia_rows
+        (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = self._inertia_inv_rows
+        t0, t1, t2 = self._torque.tolist()
+        h0 = i00 * p + i01 * q + i02 * r
+        h1 = i10 * p + i11 * q + i12 * r
+        h2 = i20 * p + i21 * q + i22 * r
+        e0 = t0 - (q * h2 - r * h1)
+        e1 = t1 - (r * h0 - p * h2)
+        e2 = t2 - (p * h1 - q * h0)
         return np.array(
             [
                 -0.5 * (x0 * p + y0 * q + z0 * r),
                 0.5 * (w0 * p + y0 * r - z0 * q),
                 0.5 * (w0 * q + z0 * p - x0 * r),
                 0.5 * (w0 * r + x0 * q - y0 * p),
-                omega_dot[0],
-                omega_dot[1],
-                omega_dot[2],
+                j00 * e0 + j01 * e1 + j02 * e2,
+                j10 * e0 + j11 * e1 + j12 * e2,
+                j20 * e0 + j21 * e1 + j22 * e2,
             ]
         )
 
@@ -878,6 +892,7 @@ class TargetAttitudeModel:
             _inertia("inertia", inertia)
         self.t = 0.0
         self._q0_lvlh_target = np.array([1.0, 0.0, 0.0, 0.0])
+        self._R0_lvlh_target = np.eye(3)
         self._q_i_target = self._q0_lvlh_target.copy()  # tumble only
         self._omega_body = np.zeros(3)
         # Tumbling: states at the next steps of equal length, from one integration per chunk
@@ -911,6 +926,8 @@ class TargetAttitudeModel:
             w = np.zeros(3)
         self.t = 0.0
         self._q0_lvlh_target = q
+        self._R0_lvlh_target = fast_quat_to_matrix(q)
+        self._R0_lvlh_target.setflags(write=False)
         self._q_i_target = q.copy()
         self._omega_body = w
         self._chunk = None
@@ -949,9 +966,18 @@ class TargetAttitudeModel:
         return lvlh_from_inertial * _rotation_from_wxyz(self._q_i_target)
 
     @property
-    def R_lvlh_target(self) -> FloatArray:  # noqa: N802 (frame-suffixed matrix name)
-        """``(3, 3)`` rotation mapping target-body coordinates to LVLH."""
-        return self.rotation_lvlh_target.as_matrix()
+    def R_lvlh_target(self) -> FloatArray:
+        """``(3, 3)`` rotation mapping target-body coordinates to LVLH (a new array).
+
+        Same rotation as :attr:`rotation_lvlh_target`, built with matrix products in plain numpy
+        (to round-off): this is read every step and a SciPy ``Rotation`` costs tens of us.
+        """
+        if self.mode == "lvlh_hold":
+            return self._R0_lvlh_target.copy()
+        lvlh_from_inertial = rotation_z(-self.n * self.t)
+        if self.mode == "inertial_hold":
+            return lvlh_from_inertial @ self._R0_lvlh_target
+        return lvlh_from_inertial @ fast_quat_to_matrix(self._q_i_target)
 
     @property
     def q_lvlh_target(self) -> FloatArray:
@@ -1055,6 +1081,9 @@ class ChaserMass:
         self.max_thrust_N = np.asarray(max_thrust_N, dtype=np.float64)
         _thrust_magnitude(np.zeros(3), norm)
         self.norm: Literal["l2", "l1"] = norm
+        # apply() runs every step: the limits and the flow constant are validated once, here.
+        self._lo, self._hi = -self.max_thrust_N, self.max_thrust_N
+        self._isp_g0 = self.isp * G0
 
     @property
     def mass_kg(self) -> float:
@@ -1075,8 +1104,15 @@ class ChaserMass:
         Returns:
             ``(accel, thrust)``: ``(3,)`` acceleration [m/s^2] and ``(3,)`` applied thrust [N].
         """
-        thrust = saturate_thrust(_array("thrust_N", thrust_N, 3, batch=False), self.max_thrust_N)
-        need = float(propellant_used(thrust, dt, self.isp, self.norm))
+        # saturate_thrust + propellant_used, with the limit and isp validated at construction.
+        thrust = np.minimum(np.maximum(_array("thrust_N", thrust_N, 3, batch=False), self._lo), self._hi)
+        dt = _non_negative("dt", dt)
+        t0, t1, t2 = thrust.tolist()
+        if self.norm == "l2":
+            magnitude = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+        else:
+            magnitude = abs(t0) + abs(t1) + abs(t2)
+        need = magnitude / self._isp_g0 * dt
         if need > self.propellant_kg:
             thrust = thrust * (self.propellant_kg / need)
             need = self.propellant_kg

@@ -9,13 +9,15 @@ plumbing apart, only the quality.
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.geometry import matrix_to_quat
+from perception.geometry import fast_matrix_to_quat
 from perception.state import Mode, StateVector, Validity
 from perception.targets import TargetModel
 from tridar_env.world import SensorTruth, World
@@ -34,7 +36,20 @@ class Observer(Protocol):
 
 def bearing_of(p: np.ndarray) -> np.ndarray:
     """(az, el) [rad] of a sensor-frame vector: az toward +x, el toward -y (up)."""
-    return np.array([np.arctan2(p[0], p[2]), np.arctan2(-p[1], np.hypot(p[0], p[2]))])
+    x, y, z = np.asarray(p, dtype=np.float64).reshape(3).tolist()
+    return np.array([math.atan2(x, z), math.atan2(-y, math.hypot(x, z))])
+
+
+_ALL_VALID = Validity.all()
+
+
+@functools.lru_cache(maxsize=32)
+def _truth_covariance(sigmas: tuple[float, float, float, float]) -> np.ndarray:
+    """(12, 12) diagonal covariance of a truth(-plus-noise) state; shared, read-only."""
+    var = np.repeat(np.square(np.maximum(np.array(sigmas, dtype=np.float64), 1e-6)), 3)
+    cov = np.diag(var)
+    cov.setflags(write=False)
+    return cov
 
 
 def state_from_truth(
@@ -55,8 +70,9 @@ def state_from_truth(
     v = truth.velocity.copy()
     R = truth.T_sensor_target[:3, :3]
     w = truth.angular_velocity.copy()
+    sigmas = tuple(float(s) for s in sigmas)
     sp, sv, sa, sw = sigmas
-    if any(s > 0 for s in sigmas):
+    if sp > 0 or sv > 0 or sa > 0 or sw > 0:
         if rng is None:
             raise ValueError("rng=None; a Generator is needed when noise sigmas are > 0")
         e = rng.standard_normal(12)
@@ -64,20 +80,19 @@ def state_from_truth(
         v = v + sv * e[3:6]
         R = Rotation.from_rotvec(sa * e[6:9]).as_matrix() @ R
         w = w + sw * e[9:12]
-    rng_m = float(np.linalg.norm(p))
-    var = np.repeat(np.square(np.maximum(np.array(sigmas), 1e-6)), 3)
+    rng_m = math.sqrt(float(p @ p))
     return StateVector(
         t=t,
         mode=Mode.TRACKING,
-        valid=Validity.all(),
+        valid=_ALL_VALID,
         position=p,
         velocity=v,
-        quaternion=matrix_to_quat(R),
+        quaternion=fast_matrix_to_quat(R),
         angular_velocity=w,
         range=rng_m,
-        range_rate=float(p @ v / max(rng_m, 1e-9)),
+        range_rate=float(p @ v) / max(rng_m, 1e-9),
         bearing=bearing_of(p),
-        covariance=np.diag(var),
+        covariance=_truth_covariance(sigmas).copy(),
         fitness=1.0,
         n_points=0,
     )

@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 import matplotlib
 
 matplotlib.use("Agg", force=False)
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import numpy.typing as npt  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import numpy.typing as npt
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-from perception.geometry import invert  # noqa: E402
+from perception.geometry import invert
 
 if TYPE_CHECKING:
     from tridar_env.env import DockingEnv

@@ -12,6 +12,7 @@ facing it: ``R_port_dock = diag(1, -1, -1)``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -22,7 +23,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.geometry import invert, make_T
+from perception.geometry import fast_cross, fast_invert, fast_quat_to_matrix, make_T, rotation_z
 from perception.sensors.motion import RelativeMotion
 from perception.state import TruthScene
 from perception.targets import TargetModel
@@ -39,6 +40,24 @@ FloatArray = npt.NDArray[np.float64]
 
 #: The docking frame faces the port: x along port x, z against port z.
 R_PORT_DOCK = np.diag([1.0, -1.0, -1.0])
+R_PORT_DOCK.setflags(write=False)
+
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _pose(R: FloatArray, t: FloatArray | None = None) -> FloatArray:
+    """4x4 transform from a (3, 3) rotation and a (3,) translation (``make_T`` without checks)."""
+    T = np.empty((4, 4))
+    T[:3, :3] = R
+    T[:3, 3] = 0.0 if t is None else t
+    T[3] = _LAST_ROW
+    return T
+
+
+def _frozen(a: FloatArray) -> FloatArray:
+    """Mark an array that is shared for a whole episode read-only (mutating it is a bug)."""
+    a.setflags(write=False)
+    return a
 
 
 @dataclass(frozen=True)
@@ -72,13 +91,20 @@ class SensorTruth:
 
 
 def rk4_attitude(
-    q: FloatArray, w: FloatArray, inertia: FloatArray, torque: FloatArray, dt: float, substeps: int = 4
+    q: FloatArray,
+    w: FloatArray,
+    inertia: FloatArray,
+    torque: FloatArray,
+    dt: float,
+    substeps: int = 4,
+    inertia_inv: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Rigid body under a constant body torque: classical RK4 with renormalisation.
 
     Used for the chaser, whose torque changes every step (a fresh adaptive solve per step would
     dominate the step time); at the chaser's rates (< 0.2 rad/s) and 0.05 s substeps the local
-    error is far below the attitude noise of any sensor.
+    error is far below the attitude noise of any sensor. The 7-state right-hand side is evaluated
+    in plain floats: at this size numpy's per-call overhead is most of the cost.
 
     Args:
         q: (4,) body-to-inertial quaternion, scalar first.
@@ -86,37 +112,73 @@ def rk4_attitude(
         inertia: (3, 3) [kg m^2].
         torque: (3,) body torque [N m].
         dt: step [s].
-    """
-    inv = np.linalg.inv(inertia)
+        substeps: RK4 steps per ``dt``.
+        inertia_inv: (3, 3) inverse of ``inertia`` when the caller has it (saves an inversion).
 
-    def f(y: FloatArray) -> FloatArray:
-        qw, qx, qy, qz, p, r1, r2 = y[0], y[1], y[2], y[3], y[4], y[5], y[6]
-        om = y[4:7]
-        dw = inv @ (torque - np.cross(om, inertia @ om))
-        return np.array([
+    Returns:
+        ``(q, w)`` after ``dt``: (4,) unit quaternion with ``w >= 0`` and (3,) rate [rad/s].
+    """
+    inv = np.linalg.inv(inertia) if inertia_inv is None else inertia_inv
+    (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = np.asarray(inertia, dtype=np.float64).tolist()
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = np.asarray(inv, dtype=np.float64).tolist()
+    t0, t1, t2 = np.asarray(torque, dtype=np.float64).reshape(3).tolist()
+
+    def f(
+        qw: float, qx: float, qy: float, qz: float, p: float, r1: float, r2: float
+    ) -> tuple[float, float, float, float, float, float, float]:
+        # dw = I^-1 (torque - w x (I w))
+        h0 = i00 * p + i01 * r1 + i02 * r2
+        h1 = i10 * p + i11 * r1 + i12 * r2
+        h2 = i20 * p + i21 * r1 + i22 * r2
+        e0 = t0 - (r1 * h2 - r2 * h1)
+        e1 = t1 - (r2 * h0 - p * h2)
+        e2 = t2 - (p * h1 - r1 * h0)
+        return (
             -0.5 * (qx * p + qy * r1 + qz * r2),
             0.5 * (qw * p + qy * r2 - qz * r1),
             0.5 * (qw * r1 + qz * p - qx * r2),
             0.5 * (qw * r2 + qx * r1 - qy * p),
-            dw[0], dw[1], dw[2],
-        ])
+            j00 * e0 + j01 * e1 + j02 * e2,
+            j10 * e0 + j11 * e1 + j12 * e2,
+            j20 * e0 + j21 * e1 + j22 * e2,
+        )
 
-    y = np.concatenate([q, w])
+    y0, y1, y2, y3 = np.asarray(q, dtype=np.float64).reshape(4).tolist()
+    y4, y5, y6 = np.asarray(w, dtype=np.float64).reshape(3).tolist()
     h = dt / substeps
+    hh, h6 = 0.5 * h, h / 6.0
     for _ in range(substeps):
-        k1 = f(y)
-        k2 = f(y + 0.5 * h * k1)
-        k3 = f(y + 0.5 * h * k2)
-        k4 = f(y + h * k3)
-        y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        y[:4] /= np.linalg.norm(y[:4])
-    if y[0] < 0:
-        y[:4] = -y[:4]
-    return y[:4], y[4:]
+        a0, a1, a2, a3, a4, a5, a6 = f(y0, y1, y2, y3, y4, y5, y6)
+        b0, b1, b2, b3, b4, b5, b6 = f(
+            y0 + hh * a0, y1 + hh * a1, y2 + hh * a2, y3 + hh * a3, y4 + hh * a4, y5 + hh * a5, y6 + hh * a6
+        )
+        c0, c1, c2, c3, c4, c5, c6 = f(
+            y0 + hh * b0, y1 + hh * b1, y2 + hh * b2, y3 + hh * b3, y4 + hh * b4, y5 + hh * b5, y6 + hh * b6
+        )
+        d0, d1, d2, d3, d4, d5, d6 = f(
+            y0 + h * c0, y1 + h * c1, y2 + h * c2, y3 + h * c3, y4 + h * c4, y5 + h * c5, y6 + h * c6
+        )
+        y0 += h6 * (a0 + 2 * b0 + 2 * c0 + d0)
+        y1 += h6 * (a1 + 2 * b1 + 2 * c1 + d1)
+        y2 += h6 * (a2 + 2 * b2 + 2 * c2 + d2)
+        y3 += h6 * (a3 + 2 * b3 + 2 * c3 + d3)
+        y4 += h6 * (a4 + 2 * b4 + 2 * c4 + d4)
+        y5 += h6 * (a5 + 2 * b5 + 2 * c5 + d5)
+        y6 += h6 * (a6 + 2 * b6 + 2 * c6 + d6)
+        n = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3)
+        y0, y1, y2, y3 = y0 / n, y1 / n, y2 / n, y3 / n
+    if y0 < 0:
+        y0, y1, y2, y3 = -y0, -y1, -y2, -y3
+    return np.array([y0, y1, y2, y3]), np.array([y4, y5, y6])
 
 
 class World:
     """Truth state and its propagation for one episode.
+
+    Frames derived from the state are built lazily, at most once per state (``_memo``, cleared on
+    every change of the state); those that cannot change during an episode (an LVLH-holding
+    target, the chaser that follows it, the mounts) are built once per reset and shared
+    read-only.
 
     Args:
         cfg: the mission configuration.
@@ -140,28 +202,47 @@ class World:
             ta.mode, self.n, target.inertia if ta.mode == "tumble" else None
         )
         ch = dyn.chaser
-        self.T_chaser_sensor = make_T(
+        self.T_chaser_sensor = _frozen(make_T(
             Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True), ch.sensor_position_m
-        )
-        self.T_chaser_dock = make_T(None, ch.dock_position_m)
+        ))
+        self.T_chaser_dock = _frozen(make_T(None, ch.dock_position_m))
         self.controlled_attitude = ch.attitude == "controlled"
         m0 = ch.dry_mass_kg + ch.propellant_kg
         side = 2.0 * ch.hull_radius_m
         self.chaser_inertia = np.eye(3) * m0 * side**2 / 6.0  # uniform cube of the hull's size
+        self._chaser_inertia_inv = np.linalg.inv(self.chaser_inertia)
+        self._thrust_in_body = ch.thrust_frame == "body"
+        self._hull_radius = float(ch.hull_radius_m)
+        # Beyond this distance from the target origin the hull cannot touch the mesh.
+        self._mesh_reach = float(target.radius) + self._hull_radius + 0.5
+        self._n_lvlh = _frozen(np.array([0.0, 0.0, self.n]))  # LVLH rate vs inertial, LVLH axes
+        self._zero3 = _frozen(np.zeros(3))
+        T_tp = np.asarray(target.T_target_port, dtype=np.float64)
+        self._T_target_port = _frozen(T_tp.copy())
+        self._R_target_dock = _frozen(T_tp[:3, :3] @ R_PORT_DOCK)  # ideal chaser attitude law
+        self._t_chaser_sensor = _frozen(self.T_chaser_sensor[:3, 3].copy())
         self.t = 0.0
         self.state = np.zeros(6)
         self.mass = ChaserMass(ch.dry_mass_kg, ch.propellant_kg, ch.isp_s, ch.max_thrust_n)
         self._q_i_chaser = np.array([1.0, 0.0, 0.0, 0.0])
         self._w_chaser = np.zeros(3)
         self.delta_v = 0.0
-        # Frames derived from the state are computed once per step (scipy Rotation objects are
-        # costly to build); the cache is cleared whenever the state changes.
+        # Frames derived from the state, computed once per state; reset to the episode's constant
+        # frames (``_const``) whenever the state changes.
         self._memo: dict[str, Any] = {}
+        # Frames that stay put for a whole episode (set in reset): key -> read-only array.
+        self._const: dict[str, FloatArray] = {}
 
     def _cached(self, key: str, build: Callable[[], Any]) -> Any:
-        if key not in self._memo:
-            self._memo[key] = build()
-        return self._memo[key]
+        memo = self._memo
+        value = memo.get(key)
+        if value is None:
+            value = memo[key] = build()
+        return value
+
+    def _invalidate(self) -> None:
+        """Forget the frames of the previous state (keeping the episode's constant ones)."""
+        self._memo = dict(self._const)
 
     # ------------------------------------------------------------------ reset
     def reset(self, rng: np.random.Generator) -> None:
@@ -170,7 +251,8 @@ class World:
         ini = cfg.env.initial
         self.t = 0.0
         self.delta_v = 0.0
-        self._memo.clear()
+        self._const = {}
+        self._invalidate()
         self.mass = ChaserMass(ch.dry_mass_kg, ch.propellant_kg, ch.isp_s, ch.max_thrust_n)
         if isinstance(self._trans, NonlinearRelativePropagator):
             self._trans.reset()
@@ -184,10 +266,11 @@ class World:
             self.target_attitude.reset(q0_wxyz, w_body)
         else:
             self.target_attitude.reset(q0_wxyz)
+        self._freeze_constant_frames()
         T_lp = self.T_lvlh_target @ self.target.T_target_port
         axis = T_lp[:3, 2]
         dist = ini.range_m + ini.range_dispersion_m * rng.standard_normal()
-        dist = max(dist, 0.5 * ini.range_m)
+        dist = max(dist, 0.5 * ini.range_m if ini.range_min_m is None else ini.range_min_m)
         lateral = rng.standard_normal(3) * ini.lateral_dispersion_m
         lateral -= axis * (lateral @ axis)
         r_dock = T_lp[:3, 3] + axis * dist + lateral
@@ -200,7 +283,25 @@ class World:
             R_i_c = err * Rotation.from_matrix(R_lc)  # inertial frame == LVLH at t = 0
             self._q_i_chaser = np.roll(R_i_c.as_quat(), 1)
             self._w_chaser = R_i_c.inv().apply([0.0, 0.0, self.n])  # co-rotating with LVLH
-        self._memo.clear()
+        self._invalidate()
+
+    def _freeze_constant_frames(self) -> None:
+        """Build once the frames an LVLH-holding target (and an ideal chaser) keep all episode.
+
+        They seed ``_memo`` after every step, so the properties below find them without
+        rebuilding; they are read-only because every step shares them.
+        """
+        self._const = {}
+        self._invalidate()
+        if self.target_attitude.mode != "lvlh_hold":
+            return
+        names = ["R_lvlh_target", "T_lvlh_target", "omega_target_lvlh", "T_lvlh_port"]
+        if not self.controlled_attitude:
+            names += ["R_lvlh_chaser", "chaser_angular_velocity_body"]
+        for name in names:
+            getattr(self, name)  # builds and memoises
+        self._const = {k: _frozen(v) for k, v in self._memo.items()}
+        self._invalidate()
 
     # ------------------------------------------------------------------ frames
     @property
@@ -209,7 +310,7 @@ class World:
 
     @property
     def T_lvlh_target(self) -> FloatArray:
-        return self._cached("T_lt", lambda: make_T(self.R_lvlh_target))
+        return self._cached("T_lt", lambda: _pose(self.R_lvlh_target))
 
     @property
     def omega_target_lvlh(self) -> FloatArray:
@@ -217,8 +318,8 @@ class World:
         def build() -> FloatArray:
             if self.target_attitude.mode == "lvlh_hold":
                 return np.zeros(3)
-            lvlh_rate_body = self.R_lvlh_target.T @ np.array([0.0, 0.0, self.n])
-            return self.R_lvlh_target @ (self.target_attitude.omega_body - lvlh_rate_body)
+            # R (w_body - R^T n_lvlh) = R w_body - n_lvlh
+            return self.R_lvlh_target @ self.target_attitude.omega_body - self._n_lvlh
 
         return self._cached("w_t", build)
 
@@ -226,10 +327,9 @@ class World:
     def R_lvlh_chaser(self) -> FloatArray:
         def build() -> FloatArray:
             if not self.controlled_attitude:
-                return self.R_lvlh_target @ self.target.T_target_port[:3, :3] @ R_PORT_DOCK
-            lvlh_from_i = Rotation.from_rotvec([0.0, 0.0, -self.n * self.t])
-            q = self._q_i_chaser
-            return (lvlh_from_i * Rotation.from_quat([q[1], q[2], q[3], q[0]])).as_matrix()
+                return self.R_lvlh_target @ self._R_target_dock
+            # LVLH turns at +n about z relative to the inertial frame it matched at t = 0.
+            return rotation_z(-self.n * self.t) @ fast_quat_to_matrix(self._q_i_chaser)
 
         return self._cached("R_lc", build)
 
@@ -238,11 +338,11 @@ class World:
         """Chaser angular velocity relative to LVLH, LVLH coordinates [rad/s]."""
         if not self.controlled_attitude:
             return self.omega_target_lvlh
-        return self.R_lvlh_chaser @ self._w_chaser - np.array([0.0, 0.0, self.n])
+        return self._cached("w_c", lambda: self.R_lvlh_chaser @ self._w_chaser - self._n_lvlh)
 
     @property
     def T_lvlh_chaser(self) -> FloatArray:
-        return self._cached("T_lc", lambda: make_T(self.R_lvlh_chaser, self.state[:3]))
+        return self._cached("T_lc", lambda: _pose(self.R_lvlh_chaser, self.state[:3]))
 
     @property
     def T_lvlh_sensor(self) -> FloatArray:
@@ -254,14 +354,16 @@ class World:
 
     @property
     def T_lvlh_port(self) -> FloatArray:
-        return self._cached("T_lp", lambda: self.T_lvlh_target @ self.target.T_target_port)
+        return self._cached("T_lp", lambda: self.T_lvlh_target @ self._T_target_port)
 
     @property
     def chaser_angular_velocity_body(self) -> FloatArray:
         """Chaser inertial angular velocity in its body frame [rad/s] (an IMU would read it)."""
         if self.controlled_attitude:
             return self._w_chaser.copy()
-        return self.R_lvlh_chaser.T @ (self.omega_chaser_lvlh + np.array([0.0, 0.0, self.n]))
+        return self._cached(
+            "w_c_body", lambda: self.R_lvlh_chaser.T @ (self.omega_chaser_lvlh + self._n_lvlh)
+        ).copy()
 
     # ------------------------------------------------------------------ step
     def step(self, thrust_n: FloatArray, torque_nm: FloatArray | None = None) -> FloatArray:
@@ -270,21 +372,20 @@ class World:
         Returns:
             (3,) thrust actually applied, LVLH [N] (after saturation and propellant limits).
         """
-        R_lc = self.R_lvlh_chaser
-        self._memo.clear()
-        thrust_lvlh = R_lc @ thrust_n if self.cfg.dynamics.chaser.thrust_frame == "body" else thrust_n
+        thrust_lvlh = self.R_lvlh_chaser @ thrust_n if self._thrust_in_body else thrust_n
         m_before = self.mass.mass_kg
         accel, applied = self.mass.apply(thrust_lvlh, self.dt)
-        self.delta_v += float(np.linalg.norm(applied)) / m_before * self.dt
+        self.delta_v += math.sqrt(float(applied @ applied)) / m_before * self.dt
         self.state = self._trans.step(self.state, accel)
         self.target_attitude.step(self.dt)
         if self.controlled_attitude:
-            tq = np.zeros(3) if torque_nm is None else np.asarray(torque_nm, dtype=np.float64)
+            tq = self._zero3 if torque_nm is None else np.asarray(torque_nm, dtype=np.float64)
             self._q_i_chaser, self._w_chaser = rk4_attitude(
-                self._q_i_chaser, self._w_chaser, self.chaser_inertia, tq, self.dt
+                self._q_i_chaser, self._w_chaser, self.chaser_inertia, tq, self.dt,
+                inertia_inv=self._chaser_inertia_inv,
             )
         self.t += self.dt
-        self._memo.clear()
+        self._invalidate()
         return applied
 
     # ------------------------------------------------------------------ observation of truth
@@ -294,14 +395,14 @@ class World:
 
     def _sensor_truth(self) -> SensorTruth:
         T_ls = self.T_lvlh_sensor
-        R_ls = T_ls[:3, :3]
-        T_st = invert(T_ls) @ self.T_lvlh_target
+        R_sl = T_ls[:3, :3].T
+        T_st = fast_invert(T_ls) @ self.T_lvlh_target
         w_c = self.omega_chaser_lvlh
-        r_cs = self.R_lvlh_chaser @ self.T_chaser_sensor[:3, 3]
-        v_s = self.state[3:] + np.cross(w_c, r_cs)
+        r_cs = self.R_lvlh_chaser @ self._t_chaser_sensor
+        v_s = self.state[3:] + fast_cross(w_c, r_cs)
         p = T_st[:3, 3]
-        vel = R_ls.T @ (-v_s) - np.cross(R_ls.T @ w_c, p)
-        omega = R_ls.T @ (self.omega_target_lvlh - w_c)
+        vel = R_sl @ (-v_s) - fast_cross(R_sl @ w_c, p)
+        omega = R_sl @ (self.omega_target_lvlh - w_c)
         return SensorTruth(T_st, vel, omega)
 
     def scene(self) -> TruthScene:
@@ -318,26 +419,28 @@ class World:
         T_lp = self.T_lvlh_port
         T_ld = self.T_lvlh_dock
         R_lp = T_lp[:3, :3]
-        d = R_lp.T @ (T_ld[:3, 3] - T_lp[:3, 3])
+        p_port, p_dock = T_lp[:3, 3], T_ld[:3, 3]
+        d0, d1, d2 = (R_lp.T @ (p_dock - p_port)).tolist()
         w_c, w_t = self.omega_chaser_lvlh, self.omega_target_lvlh
-        v_dock = self.state[3:] + np.cross(w_c, T_ld[:3, 3] - self.state[:3])
-        v_port = np.cross(w_t, T_lp[:3, 3])
-        rv = R_lp.T @ (v_dock - v_port)
-        cosang = float(np.clip(-(T_ld[:3, 2] @ R_lp[:, 2]), -1.0, 1.0))
+        v_dock = self.state[3:] + fast_cross(w_c, p_dock - self.state[:3])
+        v_port = fast_cross(w_t, p_port)
+        v0, v1, v2 = (R_lp.T @ (v_dock - v_port)).tolist()
+        cosang = min(max(-float(T_ld[:3, 2] @ R_lp[:, 2]), -1.0), 1.0)
+        dw = w_c - w_t
         return ContactState(
-            axial_distance=float(d[2]),
-            lateral_offset=float(np.hypot(d[0], d[1])),
-            closing_speed=float(-rv[2]),
-            lateral_speed=float(np.hypot(rv[0], rv[1])),
-            misalignment_deg=float(np.degrees(np.arccos(cosang))),
-            angular_rate_deg_s=float(np.degrees(np.linalg.norm(w_c - w_t))),
+            axial_distance=d2,
+            lateral_offset=math.hypot(d0, d1),
+            closing_speed=-v2,
+            lateral_speed=math.hypot(v0, v1),
+            misalignment_deg=math.degrees(math.acos(cosang)),
+            angular_rate_deg_s=math.degrees(math.sqrt(float(dw @ dw))),
         )
 
     def hull_clearance(self) -> float:
         """Distance [m] from the chaser hull sphere to the target mesh (inf when far away)."""
         r = self.state[:3]
-        hull = self.cfg.dynamics.chaser.hull_radius_m
-        if np.linalg.norm(r) > self.target.radius + hull + 0.5:
+        hull = self._hull_radius
+        if math.sqrt(float(r @ r)) > self._mesh_reach:
             return float("inf")
         p_target = self.T_lvlh_target[:3, :3].T @ r
         _, dist, _ = trimesh.proximity.closest_point(self.target.mesh, p_target[None])

@@ -8,11 +8,12 @@ Goals: >= 20,000 steps/s with truth, >= 200 steps/s with the full pipeline on on
 from __future__ import annotations
 
 import argparse
+
 import gymnasium as gym
 import numpy as np
 from gymnasium.utils.performance import benchmark_step, benchmark_vector_step
 
-import tridar_env  # noqa: F401  (registers the ids)
+import tridar_env  # registers the ids
 from agents.benchmarks.timing import format_table
 
 
@@ -31,7 +32,7 @@ def _measure(fn, repeats: int) -> tuple[float, float]:
 
 def run(args: argparse.Namespace) -> int:
     rows = []
-    secs = max(int(round(args.seconds)), 1)
+    secs = max(round(args.seconds), 1)
     for env_id in args.ids:
         base = None
         for perception in ("truth", "tridar"):

@@ -338,7 +338,7 @@ def test_spin_with_nutation_angle_is_requested_and_constant(axis: str) -> None:
     assert float(angle_between(h_body0, sym_body)) == pytest.approx(nutation, abs=1e-12)
     assert float(w0 @ sym_body) == pytest.approx(rate, rel=1e-12)
 
-    q, w = body.propagate(q0, w0, np.linspace(5.0, 300.0, 60))
+    _q, w = body.propagate(q0, w0, np.linspace(5.0, 300.0, 60))
     h_body = w @ inertia_body  # (T, 3), inertia symmetric
     np.testing.assert_allclose(angle_between(h_body, sym_body[None, :]), nutation, atol=1e-9)
     np.testing.assert_allclose(w @ sym_body, rate, rtol=1e-9)
@@ -348,7 +348,7 @@ def test_spin_with_nutation_angle_is_requested_and_constant(axis: str) -> None:
 
 def test_spin_with_nutation_asymmetric_and_h_direction() -> None:
     nutation = np.deg2rad(10.0)
-    moments, axes = principal_axes(INERTIA_ASYM)
+    _moments, axes = principal_axes(INERTIA_ASYM)
     target = np.array([0.0, 0.0, 1.0])
     q0, w0 = spin_with_nutation(INERTIA_ASYM, 0.2, nutation, axis="max", h_direction=target)
     h_body = INERTIA_ASYM @ w0

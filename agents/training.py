@@ -273,6 +273,36 @@ def _checkpoint_callback(save_freq: int, path: Path, vec: Any) -> Any:
     return Checkpoint(save_freq=save_freq, save_path=str(path), name_prefix="model")
 
 
+def _outcome_callback(window: int = 100) -> Any:
+    """Log how the last ``window`` training episodes ended (``outcome/<cause>`` in TensorBoard).
+
+    The return alone does not say whether a policy docks or just survives; these fractions
+    (docked, collision, corridor_exit, out_of_bounds, out_of_fuel, truncated) do.
+    """
+    from collections import deque
+
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from tridar_env.env import CAUSES
+
+    class Outcomes(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.recent: deque[str] = deque(maxlen=window)
+
+        def _on_step(self) -> bool:
+            for done, info in zip(self.locals["dones"], self.locals["infos"]):
+                if done:
+                    cause = info.get("termination") or "truncated"
+                    self.recent.append(cause)
+            if self.recent:
+                for cause in (*CAUSES, "truncated"):
+                    self.logger.record(f"outcome/{cause}", self.recent.count(cause) / len(self.recent))
+            return True
+
+    return Outcomes()
+
+
 def _save_model(model: Any, path: Path) -> None:
     # Transient training state is left out: it is pickled by SB3 and useless for inference.
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.zip")
@@ -324,7 +354,7 @@ def train(
             shutil.rmtree(out / "checkpoints", ignore_errors=True)
         out.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out / CONFIG_FILE)
-        callbacks = []
+        callbacks = [_outcome_callback()]
         if cfg.checkpoint_every_steps is not None:
             freq = max(cfg.checkpoint_every_steps // cfg.n_envs, 1)
             callbacks.append(_checkpoint_callback(freq, out / "checkpoints", vec))

@@ -30,39 +30,39 @@ from pydantic import (
 )
 
 __all__ = [
-    "ConfigError",
-    "StrictModel",
-    "TargetConfig",
-    "TriangulationConfig",
-    "TOFConfig",
+    "CONFIG_DIR",
     "BeamConfig",
-    "PointingConfig",
-    "MaterialResponseConfig",
-    "OccluderConfig",
+    "ChaserConfig",
+    "ConfigError",
+    "CorridorConfig",
+    "DockingEnvelopeConfig",
+    "DynamicsConfig",
+    "EnvConfig",
     "FaultsConfig",
-    "ScanConfig",
-    "SensorConfig",
     "FlashLidarConfig",
     "ICPConfig",
-    "PAHConfig",
-    "CorridorConfig",
-    "PipelineConfig",
-    "OrbitConfig",
-    "TargetAttitudeConfig",
-    "ChaserConfig",
-    "DynamicsConfig",
-    "DockingEnvelopeConfig",
-    "RewardConfig",
     "InitialStateConfig",
-    "EnvConfig",
+    "MaterialResponseConfig",
     "MissionConfig",
-    "CONFIG_DIR",
+    "OccluderConfig",
+    "OrbitConfig",
+    "PAHConfig",
+    "PipelineConfig",
+    "PointingConfig",
+    "RewardConfig",
+    "ScanConfig",
+    "SensorConfig",
+    "StrictModel",
+    "TOFConfig",
+    "TargetAttitudeConfig",
+    "TargetConfig",
+    "TriangulationConfig",
+    "apply_overrides",
     "config_path",
+    "flatten_overrides",
     "load_config",
     "load_yaml",
     "save_config",
-    "apply_overrides",
-    "flatten_overrides",
     "shipped_configs",
 ]
 
@@ -425,14 +425,29 @@ class DockingEnvelopeConfig(StrictModel):
 
 
 class RewardConfig(StrictModel):
-    """Weights of the reward terms (each term is reported in ``info`` as ``reward_<name>``)."""
+    """Weights of the reward terms (each term is reported in ``info`` as ``reward_<name>``).
+
+    ``progress`` and ``lateral`` are potential-based shaping (the decrease of the dock-to-port
+    distance and of the offset from the port axis, per metre), so they change how fast a policy
+    learns, not which policy is best. ``speed_limit`` (closing faster than the limit) and
+    ``speed_profile`` (closing speed off the reference profile, which ends in the middle of the
+    envelope's axial-speed band) are per m/s, the first per step and the second per second of
+    simulated time; ``time`` is per second; ``fuel`` per kg.
+    ``collision`` is the penalty for hitting the hull or slamming the port; a port contact just
+    outside the envelope costs ``collision * min(1, near_miss + excess)``, where ``excess`` is the
+    largest relative violation of an envelope limit, so that a near miss is told from a crash.
+    """
 
     progress: FiniteFloat = 1.0
+    lateral: FiniteFloat = 2.0
     alignment: FiniteFloat = 0.1
     speed_limit: FiniteFloat = 1.0
+    speed_profile: FiniteFloat = 1.0
+    time: FiniteFloat = 0.02
     fuel: FiniteFloat = 10.0
     success: FiniteFloat = 100.0
     collision: FiniteFloat = 100.0
+    near_miss: Annotated[float, Field(ge=0, le=1)] = 0.3
     corridor: FiniteFloat = 50.0
 
 
@@ -441,6 +456,9 @@ class InitialStateConfig(StrictModel):
 
     range_m: PositiveFloat = 30.0
     range_dispersion_m: NonNegFloat = 2.0
+    range_min_m: PositiveFloat | None = Field(
+        None, description="lower clip of the dispersed range [m] (default: half of range_m)"
+    )
     lateral_dispersion_m: NonNegFloat = 0.5
     velocity_dispersion_m_s: NonNegFloat = 0.005
     closing_speed_m_s: NonNegFloat = 0.0
@@ -461,6 +479,11 @@ class EnvConfig(StrictModel):
     truth_noise_rate_deg_s: NonNegFloat = 0.05
     speed_limit_gain_s: PositiveFloat = Field(0.02, description="v_max = v0 + gain * range")
     speed_limit_floor_m_s: PositiveFloat = 0.08
+    speed_profile_gain_s: NonNegFloat = Field(
+        0.01, description="reference closing speed v_ref = envelope mid-speed + gain * distance "
+        "(reward.speed_profile)"
+    )
+    speed_profile_max_m_s: PositiveFloat = Field(0.2, description="cap of the reference closing speed")
     initial: InitialStateConfig = InitialStateConfig()
     envelope: DockingEnvelopeConfig = DockingEnvelopeConfig()
     reward: RewardConfig = RewardConfig()

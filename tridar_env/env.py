@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -10,12 +11,12 @@ import numpy as np
 import numpy.typing as npt
 from gymnasium import spaces
 
-from perception.config import MissionConfig, flatten_overrides, load_config
-from perception.geometry import invert, matrix_to_quat
-from perception.state import Mode, StateVector
+from perception.config import DockingEnvelopeConfig, MissionConfig, flatten_overrides, load_config
+from perception.geometry import fast_cross, fast_matrix_to_quat, fast_quat_to_matrix, invert
+from perception.state import Mode, StateVector, Validity
 from perception.targets import TargetModel, load_target
 from tridar_env.observers import Observer, make_observer
-from tridar_env.world import World
+from tridar_env.world import ContactState, World
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -50,6 +51,12 @@ def observation_slices() -> dict[str, slice]:
     return out
 
 
+_SLICES = observation_slices()
+
+#: ``info["mode"]`` of each mode.
+_MODE_NAMES = {m: m.name.lower() for m in Mode}
+
+
 def _resolve_config(config: str | Path | MissionConfig | dict[str, Any] | None, **overrides: Any) -> MissionConfig:
     if isinstance(config, MissionConfig):
         if overrides:
@@ -66,6 +73,24 @@ def _make_target(cfg: MissionConfig) -> TargetModel:
         port = (tc.port_position_m, tc.port_axis) if tc.port_position_m is not None else None
         return load_target(tc.name, scale=tc.scale, port=port, mass=tc.mass_kg, reflectivity=tc.reflectivity)
     return load_target(tc.name)
+
+
+def envelope_excess(c: ContactState, e: DockingEnvelopeConfig) -> float:
+    """Largest relative violation of the capture envelope at a contact (0 inside it).
+
+    Each limit contributes ``value / limit - 1`` when exceeded (and the axial speed
+    ``1 - value / minimum`` when too slow); the largest is returned.
+    """
+    v = c.closing_speed
+    slow = 1.0 - v / e.axial_speed_min_m_s if e.axial_speed_min_m_s > 0 and v < e.axial_speed_min_m_s else 0.0
+    return max(
+        0.0, slow,
+        v / e.axial_speed_max_m_s - 1.0,
+        c.lateral_offset / e.lateral_offset_max_m - 1.0,
+        c.lateral_speed / e.lateral_speed_max_m_s - 1.0,
+        c.misalignment_deg / e.misalignment_max_deg - 1.0,
+        c.angular_rate_deg_s / e.angular_rate_max_deg_s - 1.0,
+    )
 
 
 class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
@@ -107,11 +132,15 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     Invalid blocks hold zeros (never stale numbers); the validity flags say which.
 
     ## Rewards
-    ``progress`` (decrease of the true dock-to-port distance), ``alignment`` (-(1 - cos) of the
-    line of sight off the port axis), ``speed_limit`` (closing faster than
-    ``floor + gain * distance``), ``fuel`` (propellant used [kg]), ``success`` (docked),
-    ``collision`` and ``corridor`` (leaving the corridor or the bounds); each weighted by
-    ``env.reward`` and reported as ``info["reward_<name>"]``; they sum to the reward.
+    ``progress`` (decrease of the true dock-to-port distance), ``lateral`` (decrease of the
+    offset from the port axis), ``alignment`` (-(1 - cos) of the line of sight off the port axis),
+    ``speed_limit`` (closing faster than ``floor + gain * distance``), ``speed_profile`` (closing
+    speed off ``min(mid-envelope speed + speed_profile_gain_s * distance, speed_profile_max_m_s)``),
+    ``time`` (per second),
+    ``fuel`` (propellant used [kg]), ``success`` (docked), ``collision`` (graded for a port contact
+    just outside the envelope, see :func:`envelope_excess`) and ``corridor`` (leaving the corridor
+    or the bounds); each weighted by ``env.reward`` and reported as ``info["reward_<name>"]``;
+    they sum to the reward. ``progress`` and ``lateral`` are potential-based shaping.
 
     ## Starting State
     The chaser docking frame faces the port on its axis at ``env.initial.range_m`` (dispersed),
@@ -161,10 +190,15 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._obs_low, self._obs_high = self._bounds()
         self.observation_space = spaces.Box(self._obs_low, self._obs_high, dtype=np.float32)
         self._T_dock_sensor = invert(self.world.T_chaser_dock) @ self.world.T_chaser_sensor
+        self._T_target_port = np.array(self.target.T_target_port, dtype=np.float64)
+        self._obs_low64 = self._obs_low.astype(np.float64)
+        self._obs_high64 = self._obs_high.astype(np.float64)
+        self._validity_flags: dict[Validity, FloatArray] = {}  # observation block per flag set
         self._steps = 0
         self._ready = False
         self._state: StateVector | None = None
         self._prev_distance = 0.0
+        self._prev_lateral = 0.0
         self._renderer: Any = None
         self.history: list[dict[str, Any]] = []
 
@@ -190,33 +224,44 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     # ------------------------------------------------------------------ observation
     def _observation(self, sv: StateVector) -> npt.NDArray[np.float32]:
         v = sv.valid
-        onehot = np.zeros(3)
-        onehot[int(sv.mode)] = 1.0
-        pos = np.zeros(3)
-        vel = np.zeros(3)
-        q = np.zeros(4)
-        om = np.zeros(3)
-        R_ds = self._T_dock_sensor[:3, :3]
+        S = _SLICES
+        obs = np.zeros(OBS_DIM)
+        obs[int(sv.mode)] = 1.0  # mode_onehot
+        flags = self._validity_flags.get(v)
+        if flags is None:
+            flags = self._validity_flags[v] = v.as_array().astype(np.float64)
+        obs[S["valid"]] = flags
         if v.position and v.attitude:
-            T_dock_port = self._T_dock_sensor @ sv.T_sensor_target @ self.target.T_target_port
-            pos = T_dock_port[:3, 3]
-            q = matrix_to_quat(T_dock_port[:3, :3])
+            R_ds = self._T_dock_sensor[:3, :3]
+            R_st = fast_quat_to_matrix(sv.quaternion)
+            T_st = np.empty((4, 4))
+            T_st[:3, :3] = R_st
+            T_st[:3, 3] = sv.position
+            T_st[3] = (0.0, 0.0, 0.0, 1.0)
+            T_dock_port = self._T_dock_sensor @ T_st @ self._T_target_port
+            obs[S["port_position_dock"]] = T_dock_port[:3, 3]
+            obs[S["q_dock_port"]] = fast_matrix_to_quat(T_dock_port[:3, :3])
             if v.velocity and v.angular_velocity:
-                r_port_s = sv.T_sensor_target[:3, :3] @ self.target.T_target_port[:3, 3]
-                vel = R_ds @ (sv.velocity + np.cross(sv.angular_velocity, r_port_s))
+                r_port_s = R_st @ self._T_target_port[:3, 3]
+                obs[S["port_velocity_dock"]] = R_ds @ (sv.velocity + fast_cross(sv.angular_velocity, r_port_s))
             if v.angular_velocity:
-                om = R_ds @ sv.angular_velocity
+                obs[S["omega_port_dock"]] = R_ds @ sv.angular_velocity
+        if v.range:
+            obs[S["range"]] = sv.range
+        if v.range_rate:
+            obs[S["range_rate"]] = sv.range_rate
+        if v.bearing:
+            obs[S["bearing"]] = sv.bearing
+        obs[S["fitness"]] = sv.fitness
         w = self.world
         fuel0 = self.cfg.dynamics.chaser.propellant_kg
-        obs = np.concatenate([
-            onehot, v.as_array(), pos, vel, q, om,
-            [sv.range if v.range else 0.0], [sv.range_rate if v.range_rate else 0.0],
-            sv.bearing if v.bearing else np.zeros(2), [sv.fitness],
-            [w.mass.propellant_kg / fuel0 if fuel0 > 0 else 0.0],
-            [self._steps / self.cfg.env.max_episode_steps],
-            w.chaser_angular_velocity_body,
-        ])
-        return np.clip(obs, self._obs_low, self._obs_high).astype(np.float32)
+        obs[S["fuel_fraction"]] = w.mass.propellant_kg / fuel0 if fuel0 > 0 else 0.0
+        obs[S["time_fraction"]] = self._steps / self.cfg.env.max_episode_steps
+        obs[S["chaser_rate_body"]] = w.chaser_angular_velocity_body
+        # np.clip in place, without its dispatch overhead (NaN propagates the same way).
+        np.maximum(obs, self._obs_low64, out=obs)
+        np.minimum(obs, self._obs_high64, out=obs)
+        return obs.astype(np.float32)
 
     # ------------------------------------------------------------------ API
     def reset(
@@ -228,6 +273,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._steps = 0
         self._ready = True
         self._prev_distance = self._distance()
+        self._prev_lateral = self.world.contact().lateral_offset
         self._state = self.observer.observe(self.world, self.np_random)
         self.history = []
         info = self._info(self._state, {}, "", 0)
@@ -244,10 +290,10 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != self.action_space.shape:
             raise ValueError(f"action has shape {a.shape}; expected {self.action_space.shape}")
-        if not np.all(np.isfinite(a)):
+        if not np.isfinite(a).all():
             raise ValueError(f"action={a.tolist()} contains NaN or inf; expected finite values in [-1, 1]")
         clipped = int(np.count_nonzero(np.abs(a) > 1.0))
-        a = np.clip(a, -1.0, 1.0)
+        a = np.minimum(np.maximum(a, -1.0), 1.0)
         ch = self.cfg.dynamics.chaser
         thrust = a[:3] * ch.max_thrust_n
         torque = a[3:] * ch.max_torque_nm if a.size == 6 else None
@@ -274,7 +320,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     # ------------------------------------------------------------------ physics outcomes
     def _distance(self) -> float:
         T_lp, T_ld = self.world.T_lvlh_port, self.world.T_lvlh_dock
-        return float(np.linalg.norm(T_ld[:3, 3] - T_lp[:3, 3]))
+        d = T_ld[:3, 3] - T_lp[:3, 3]
+        return math.sqrt(float(d @ d))
 
     def _termination(self) -> str:
         w, env = self.world, self.cfg.env
@@ -291,10 +338,11 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
             return "docked" if inside else "collision"
         if w.hull_clearance() <= 0.0:
             return "collision"
-        if np.linalg.norm(w.state[:3]) > env.max_range_m:
+        r = w.state[:3]
+        if math.sqrt(float(r @ r)) > env.max_range_m:
             return "out_of_bounds"
         if env.corridor_half_angle_deg is not None and c.axial_distance > 2.0:
-            off = np.degrees(np.arctan2(c.lateral_offset, c.axial_distance))
+            off = math.degrees(math.atan2(c.lateral_offset, c.axial_distance))
             if off > env.corridor_half_angle_deg or c.axial_distance < 0:
                 return "corridor_exit"
         if w.mass.propellant_kg <= 0.0:
@@ -307,16 +355,31 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         c = self.world.contact()
         d = self._distance()
         progress = self._prev_distance - d
-        self._prev_distance = d
+        lateral = self._prev_lateral - c.lateral_offset
+        self._prev_distance, self._prev_lateral = d, c.lateral_offset
         los = np.arctan2(c.lateral_offset, max(c.axial_distance, 1e-3))
+        dt = env.frame_period_s * env.frame_skip
         v_max = env.speed_limit_floor_m_s + env.speed_limit_gain_s * max(c.axial_distance, 0.0)
+        e = env.envelope
+        v_ref = min(0.5 * (e.axial_speed_min_m_s + e.axial_speed_max_m_s)
+                    + env.speed_profile_gain_s * max(c.axial_distance, 0.0), env.speed_profile_max_m_s)
+        collision = 0.0
+        if cause == "collision":
+            collision = -rw.collision
+            port_contact = (c.axial_distance <= 0.0
+                            and c.lateral_offset <= self.cfg.dynamics.chaser.hull_radius_m)
+            if port_contact:
+                collision *= min(1.0, rw.near_miss + envelope_excess(c, env.envelope))
         return {
             "reward_progress": rw.progress * progress,
+            "reward_lateral": rw.lateral * lateral,
             "reward_alignment": -rw.alignment * (1.0 - float(np.cos(los))),
             "reward_speed_limit": -rw.speed_limit * max(0.0, c.closing_speed - v_max),
+            "reward_speed_profile": -rw.speed_profile * abs(c.closing_speed - v_ref) * dt,
+            "reward_time": -rw.time * dt,
             "reward_fuel": -rw.fuel * fuel_used,
             "reward_success": rw.success if cause == "docked" else 0.0,
-            "reward_collision": -rw.collision if cause == "collision" else 0.0,
+            "reward_collision": collision,
             "reward_corridor": -rw.corridor if cause in ("corridor_exit", "out_of_bounds") else 0.0,
         }
 
@@ -327,13 +390,16 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         pos_err = att_err = float("nan")
         info: dict[str, Any] = dict(terms)
         if sv.valid.position:
-            pos_err = float(np.linalg.norm(sv.position - truth.T_sensor_target[:3, 3]))
+            dp = sv.position - truth.T_sensor_target[:3, 3]
+            pos_err = math.sqrt(float(dp @ dp))
         if sv.valid.attitude:
-            dR = truth.T_sensor_target[:3, :3].T @ sv.T_sensor_target[:3, :3]
-            att_err = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+            # trace(R_true^T R_est) without forming the product
+            tr = float(np.sum(truth.T_sensor_target[:3, :3] * fast_quat_to_matrix(sv.quaternion)))
+            att_err = math.degrees(math.acos(min(max((tr - 1.0) / 2.0, -1.0), 1.0)))
+        mode = _MODE_NAMES.get(sv.mode)
         info.update(
             t=w.t,
-            mode=Mode(sv.mode).name.lower(),
+            mode=mode if mode is not None else Mode(sv.mode).name.lower(),
             termination=cause,
             clipped_actions=clipped,
             truth_r_lvlh=w.state[:3].copy(),

@@ -77,8 +77,9 @@ def test_reward_terms_sum_to_reward() -> None:
         if term:
             break
     assert names == {
-        "reward_progress", "reward_alignment", "reward_speed_limit", "reward_fuel",
-        "reward_success", "reward_collision", "reward_corridor",
+        "reward_progress", "reward_lateral", "reward_alignment", "reward_speed_limit",
+        "reward_speed_profile", "reward_time", "reward_fuel", "reward_success", "reward_collision",
+        "reward_corridor",
     }
 
 
@@ -214,7 +215,7 @@ def test_vector_envs_step(mode: str) -> None:
     obs, _ = envs.reset(seed=[1, 2])
     assert obs.shape == (2, OBS_DIM)
     for _ in range(3):
-        obs, r, term, trunc, _ = envs.step(np.zeros((2, 3), dtype=np.float32))
+        obs, r, _term, _trunc, _ = envs.step(np.zeros((2, 3), dtype=np.float32))
     assert np.all(np.isfinite(obs)) and r.shape == (2,)
     envs.close()
 
@@ -228,7 +229,7 @@ def test_sb3_subproc_vec_env_pickles() -> None:
     venv = make_vec_env("tridar_env:TriDAR/FinalApproach-v0", n_envs=2, vec_env_cls=SubprocVecEnv,
                         env_kwargs={"perception": "truth"}, vec_env_kwargs={"start_method": "spawn"})
     obs = venv.reset()
-    obs, r, done, _ = venv.step(np.zeros((2, 3), dtype=np.float32))
+    obs, _r, _done, _ = venv.step(np.zeros((2, 3), dtype=np.float32))
     assert obs.shape == (2, OBS_DIM) and np.all(np.isfinite(obs))
     venv.close()
 

@@ -24,6 +24,7 @@ unpickled; the network weights are read by ``torch.load(weights_only=True)``.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import inspect
 import json
@@ -45,6 +46,7 @@ from perception.config import ConfigError, MissionConfig, config_path, load_conf
 
 __all__ = [
     "NormalizeConfig",
+    "PretrainConfig",
     "SB3Policy",
     "TrainResult",
     "TrainingConfig",
@@ -58,6 +60,7 @@ __all__ = [
 MODEL_FILE = "model.zip"
 STATS_FILE = "vecnormalize.npz"
 CONFIG_FILE = "training.yaml"
+PRETRAIN_FILE = "pretrain.json"
 #: Members every SB3 model archive has.
 SB3_MEMBERS = ("data", "policy.pth")
 
@@ -73,6 +76,32 @@ class NormalizeConfig(BaseModel):
     clip_reward: Annotated[float, Field(gt=0)] = 10.0
 
 
+class PretrainConfig(BaseModel):
+    """Behaviour-cloning warm start from a scripted controller (PPO only).
+
+    Before PPO starts, ``controller`` flies ``episodes`` episodes of the training env (its
+    executed actions perturbed by Gaussian ``action_noise`` so that the demonstrations also show
+    how to recover from small mistakes; the labels are the controller's clean actions). The
+    observation statistics of ``VecNormalize`` are initialised from those states, the policy mean
+    is fitted to the actions (mean squared error) and the value head to the demonstrations'
+    normalised discounted returns, for ``epochs`` passes; the policy's log standard deviation is
+    then set to ``log_std``. PPO fine-tunes from there on the env's reward; during its first
+    ``critic_warmup_steps`` steps only the value function learns (the actor is frozen), so that
+    the first policy updates use advantages from a critic fitted to the env's own returns.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    controller: str = "glideslope"
+    episodes: Annotated[int, Field(ge=1)] = 100
+    action_noise: Annotated[float, Field(ge=0)] = 0.1
+    epochs: Annotated[int, Field(ge=1)] = 40
+    batch_size: Annotated[int, Field(ge=1)] = 256
+    learning_rate: Annotated[float, Field(gt=0)] = 1e-3
+    log_std: float = -2.5
+    critic_warmup_steps: Annotated[int, Field(ge=0)] = 0
+
+
 class TrainingConfig(BaseModel):
     """A training run (one YAML file in ``configs/training``).
 
@@ -81,7 +110,10 @@ class TrainingConfig(BaseModel):
         algo: ``ppo`` or ``sac``.
         env_id: registered id; ``mission`` optionally replaces its mission file.
         perception: what the policy sees while training (``truth+noise`` is the intended mode).
-        config: mission-config overrides, ``__``-nested (e.g. ``env__truth_noise_position_m``).
+        config: mission-config overrides, ``__``-nested (e.g. ``env__truth_noise_position_m``),
+            used in training and by default in :func:`evaluate`.
+        train_config: overrides applied on top of ``config`` only while training (e.g. a wider
+            start distribution as a curriculum); evaluation flies the mission without them.
         total_timesteps: environment steps over all envs.
         n_envs: parallel envs; ``vec_env`` ``subproc`` (one process each) or ``dummy``.
         seed: seeds SB3, torch and the envs (env ``k`` gets ``seed + k``).
@@ -89,6 +121,7 @@ class TrainingConfig(BaseModel):
         checkpoint_every_steps: save model + statistics every this many total steps (None: off).
         net_arch, activation, log_std_init: policy network.
         hyperparams: keyword arguments of the SB3 algorithm (``learning_rate``, ``n_steps``, ...).
+        pretrain: optional behaviour-cloning warm start (:class:`PretrainConfig`, PPO only).
         device: torch device; ``torch_threads``: intra-op threads of the learner.
     """
 
@@ -100,6 +133,7 @@ class TrainingConfig(BaseModel):
     mission: str | None = None
     perception: Literal["truth", "truth+noise", "tridar"] = "truth+noise"
     config: dict[str, Any] = Field(default_factory=dict)
+    train_config: dict[str, Any] = Field(default_factory=dict)
     total_timesteps: Annotated[int, Field(ge=1)] = 1_000_000
     n_envs: Annotated[int, Field(ge=1, le=256)] = 2
     vec_env: Literal["subproc", "dummy"] = "subproc"
@@ -110,6 +144,7 @@ class TrainingConfig(BaseModel):
     activation: Literal["tanh", "relu", "elu", "leaky_relu"] | None = None
     log_std_init: float | None = None
     hyperparams: dict[str, Any] = Field(default_factory=dict)
+    pretrain: PretrainConfig | None = None
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     torch_threads: Annotated[int, Field(ge=1)] = 1
 
@@ -148,6 +183,8 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
 
     if _bare_id(cfg.env_id) not in ENV_IDS:
         fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
+    if cfg.pretrain is not None and cfg.algo != "ppo":
+        fail(f"pretrain is set with algo={cfg.algo!r}; behaviour cloning is implemented for 'ppo'")
     if cfg.mission is not None and not Path(cfg.mission).is_file():
         fail(f"mission={cfg.mission!r}: no such file")
     params = set(inspect.signature(_algo_class(cfg.algo).__init__).parameters) - _RESERVED - {"self"}
@@ -161,11 +198,19 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
             fail(f"hyperparams.{key}={value!r}; expected a number, string, bool or list")
     try:
         mission = load_config(
-            _mission_path(cfg.env_id, cfg.mission), **cfg.config, env__perception=cfg.perception
+            _mission_path(cfg.env_id, cfg.mission), **cfg.config, **cfg.train_config,
+            env__perception=cfg.perception
         )
     except ConfigError as exc:
         detail = "; ".join(line.strip() for line in str(exc).splitlines()[1:]) or str(exc)
         fail(f"config gives an invalid mission: {detail}")
+    if cfg.pretrain is not None:
+        from agents.controllers import make_controller
+
+        try:
+            make_controller(cfg.pretrain.controller, mission)
+        except ValueError as exc:
+            fail(f"pretrain.{exc}")
     return mission
 
 
@@ -224,19 +269,152 @@ class TrainResult:
     interrupted: bool = False
 
 
-def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig) -> Any:
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
+def _env_args(cfg: TrainingConfig, mission: MissionConfig) -> tuple[str, dict[str, Any]]:
     env_id = cfg.env_id if ":" in cfg.env_id else f"tridar_env:{cfg.env_id}"
     kwargs = {
         "perception": cfg.perception, "config": cfg.mission,
         "max_episode_steps": mission.env.max_episode_steps,
-        **{k: v for k, v in cfg.config.items() if k.replace(".", "__") != "env__perception"},
+        **{k: v for k, v in {**cfg.config, **cfg.train_config}.items()
+           if k.replace(".", "__") != "env__perception"},
     }
+    return env_id, kwargs
+
+
+def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig) -> Any:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    env_id, kwargs = _env_args(cfg, mission)
     vec_cls = SubprocVecEnv if cfg.vec_env == "subproc" and cfg.n_envs > 1 else DummyVecEnv
     return make_vec_env(env_id, n_envs=cfg.n_envs, seed=cfg.seed, vec_env_cls=vec_cls,
                         env_kwargs=kwargs)
+
+
+@dataclass
+class Demonstrations:
+    """State-action pairs flown by a scripted controller (see :class:`PretrainConfig`).
+
+    Attributes:
+        obs: ``(N, obs_dim)`` raw observations; ``actions``: ``(N, act_dim)`` clean controller
+            actions in ``[-1, 1]``; ``rewards``: ``(N,)``; ``episode``: ``(N,)`` episode index;
+            ``outcomes``: how each episode ended (its termination cause, or ``truncated``).
+    """
+
+    obs: npt.NDArray[np.float32]
+    actions: npt.NDArray[np.float32]
+    rewards: npt.NDArray[np.float64]
+    episode: npt.NDArray[np.int64]
+    outcomes: list[str]
+
+
+def collect_demonstrations(
+    cfg: TrainingConfig, mission: MissionConfig, progress: bool = False
+) -> Demonstrations:
+    """Fly ``cfg.pretrain.controller`` on the training env (seeds ``cfg.seed + 10_000 + k``)."""
+    import gymnasium as gym
+
+    from agents.controllers import make_controller
+
+    pre = cfg.pretrain
+    if pre is None:
+        raise ValueError("collect_demonstrations needs cfg.pretrain")
+    env_id, kwargs = _env_args(cfg, mission)
+    env = gym.make(env_id, **kwargs)
+    ctl = make_controller(pre.controller, env.unwrapped.cfg)
+    rng = np.random.default_rng(cfg.seed)
+    obs_l, act_l, rew_l, ep_l, outcomes = [], [], [], [], []
+    episodes = range(pre.episodes)
+    if progress:
+        from tqdm.auto import tqdm
+
+        episodes = tqdm(episodes, desc="demonstrations", unit="ep")
+    try:
+        for k in episodes:
+            reset = getattr(ctl, "reset", None)
+            if callable(reset):
+                reset()
+            obs, _ = env.reset(seed=cfg.seed + 10_000 + k)
+            while True:
+                label = np.clip(np.asarray(ctl(obs), dtype=np.float32), -1.0, 1.0)
+                act = label + pre.action_noise * rng.standard_normal(label.shape).astype(np.float32)
+                obs_l.append(obs)
+                act_l.append(label)
+                ep_l.append(k)
+                obs, r, term, trunc, info = env.step(np.clip(act, -1.0, 1.0))
+                rew_l.append(float(r))
+                if term or trunc:
+                    outcomes.append(info["termination"] if term else "truncated")
+                    break
+    finally:
+        env.close()
+    return Demonstrations(np.asarray(obs_l, np.float32), np.asarray(act_l, np.float32),
+                          np.asarray(rew_l), np.asarray(ep_l, np.int64), outcomes)
+
+
+def pretrain_policy(model: Any, vec: Any, demos: Demonstrations, pre: PretrainConfig, gamma: float,
+                    seed: int) -> dict[str, Any]:
+    """Behaviour cloning of a PPO ``model`` on ``demos`` (see :class:`PretrainConfig`).
+
+    Initialises ``vec``'s observation (and return) statistics from the demonstrations, fits the
+    policy mean to the actions and the value head to the normalised discounted returns, then
+    sets the policy's log standard deviation. Returns the final losses.
+    """
+    import torch
+
+    obs = demos.obs.astype(np.float64)
+    # Reward normalisation as VecNormalize does it: by the spread of the running discounted return.
+    running = np.empty_like(demos.rewards)
+    ret = 0.0
+    for i, (r, ep) in enumerate(zip(demos.rewards, demos.episode)):
+        ret = r if i == 0 or ep != demos.episode[i - 1] else ret * gamma + r
+        running[i] = ret
+    if vec.norm_obs:
+        vec.obs_rms.update(obs)
+    if vec.norm_reward:
+        vec.ret_rms.update(running)
+        scale = np.sqrt(vec.ret_rms.var + vec.epsilon)
+        r_norm = np.clip(demos.rewards / scale, -vec.clip_reward, vec.clip_reward)
+    else:
+        r_norm = demos.rewards
+    # Discounted return-to-go of each state, per episode (the episodes end by termination).
+    targets = np.empty_like(r_norm)
+    g = 0.0
+    for i in range(len(r_norm) - 1, -1, -1):
+        last = i == len(r_norm) - 1 or demos.episode[i + 1] != demos.episode[i]
+        g = r_norm[i] if last else r_norm[i] + gamma * g
+        targets[i] = g
+    policy = model.policy
+    x = torch.as_tensor(vec.normalize_obs(obs), dtype=torch.float32)
+    y = torch.as_tensor(demos.actions, dtype=torch.float32)
+    v = torch.as_tensor(targets, dtype=torch.float32)
+    opt = torch.optim.Adam(policy.parameters(), lr=pre.learning_rate)
+    gen = torch.Generator().manual_seed(seed)
+    policy.set_training_mode(True)
+    act_loss = val_loss = float("nan")
+    for _ in range(pre.epochs):
+        order = torch.randperm(len(x), generator=gen)
+        a_sum = v_sum = 0.0
+        for start in range(0, len(x), pre.batch_size):
+            idx = order[start:start + pre.batch_size]
+            mean = policy.get_distribution(x[idx]).distribution.mean
+            value = policy.predict_values(x[idx]).flatten()
+            la = torch.nn.functional.mse_loss(mean, y[idx])
+            lv = torch.nn.functional.mse_loss(value, v[idx])
+            opt.zero_grad()
+            (la + 0.5 * lv).backward()
+            opt.step()
+            a_sum += float(la.detach()) * len(idx)
+            v_sum += float(lv.detach()) * len(idx)
+        act_loss, val_loss = a_sum / len(x), v_sum / len(x)
+    policy.set_training_mode(False)
+    with torch.no_grad():
+        policy.log_std.fill_(pre.log_std)
+    docked = sum(o == "docked" for o in demos.outcomes)
+    return {
+        "controller": pre.controller, "episodes": len(demos.outcomes), "samples": len(x),
+        "demo_docked": docked, "action_mse": act_loss, "value_mse": val_loss,
+        "log_std": pre.log_std,
+    }
 
 
 def _policy_kwargs(cfg: TrainingConfig) -> dict[str, Any]:
@@ -303,6 +481,30 @@ def _outcome_callback(window: int = 100) -> Any:
     return Outcomes()
 
 
+def _critic_warmup_callback(steps: int) -> Any:
+    """Freeze the actor (policy network, action head, log std) for the first ``steps`` steps."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class CriticWarmup(BaseCallback):
+        def _actor(self) -> list[Any]:
+            p = self.model.policy
+            return [*p.mlp_extractor.policy_net.parameters(), *p.action_net.parameters(), p.log_std]
+
+        def _on_training_start(self) -> None:
+            for param in self._actor():
+                param.requires_grad_(False)
+
+        def _on_rollout_start(self) -> None:
+            if self.num_timesteps >= steps:
+                for param in self._actor():
+                    param.requires_grad_(True)
+
+        def _on_step(self) -> bool:
+            return True
+
+    return CriticWarmup()
+
+
 def _save_model(model: Any, path: Path) -> None:
     # Transient training state is left out: it is pickled by SB3 and useless for inference.
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.zip")
@@ -347,14 +549,22 @@ def train(
             "MlpPolicy", vec, seed=cfg.seed, verbose=0, tensorboard_log=tb,
             policy_kwargs=_policy_kwargs(cfg) or None, device=cfg.device, **cfg.hyperparams,
         )
+        pretrain_stats = None
+        if cfg.pretrain is not None:
+            demos = collect_demonstrations(cfg, mission, progress=progress)
+            pretrain_stats = pretrain_policy(model, vec, demos, cfg.pretrain, gamma, cfg.seed)
         # The env and model were built: only now does the run folder appear.
         if force and out.exists():
-            for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE):
+            for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE):
                 (out / name).unlink(missing_ok=True)
             shutil.rmtree(out / "checkpoints", ignore_errors=True)
         out.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out / CONFIG_FILE)
+        if pretrain_stats is not None:
+            (out / PRETRAIN_FILE).write_text(json.dumps(pretrain_stats, indent=2) + "\n")
         callbacks = [_outcome_callback()]
+        if cfg.pretrain is not None and cfg.pretrain.critic_warmup_steps > 0:
+            callbacks.append(_critic_warmup_callback(cfg.pretrain.critic_warmup_steps))
         if cfg.checkpoint_every_steps is not None:
             freq = max(cfg.checkpoint_every_steps // cfg.n_envs, 1)
             callbacks.append(_checkpoint_callback(freq, out / "checkpoints", vec))
@@ -599,6 +809,8 @@ def evaluate(
     max_steps: int | None = None,
     progress: bool = True,
     on_episode: Callable[[dict[str, Any]], None] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """Fly a saved policy for ``episodes`` episodes (deterministic actions) and summarise.
 
@@ -614,7 +826,9 @@ def evaluate(
         config: mission-config overrides (default: those of the training run).
         max_steps: optional step cap per episode.
         progress: tqdm bar over episodes.
-        on_episode: called with each row.
+        on_episode: called with each row (in completion order when run in parallel).
+        workers: run the episodes on a Dask LocalCluster with this many worker processes
+            (None or 1: in this process); ``scheduler``: or on an existing Dask scheduler.
 
     Returns:
         ``(table, summary)``: a ``pandas.DataFrame`` (one row per episode, campaign columns) and
@@ -622,7 +836,14 @@ def evaluate(
     """
     import pandas as pd
 
-    from agents.campaign import CampaignConfig, build_specs, run_one, summarize, validate_campaign
+    from agents.campaign import (
+        CampaignConfig,
+        build_specs,
+        iter_results,
+        open_client,
+        summarize,
+        validate_campaign,
+    )
 
     if episodes < 1:
         raise ValueError(f"episodes={episodes}; expected >= 1")
@@ -649,18 +870,21 @@ def evaluate(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=episodes, desc="evaluate", unit="ep")
+    parallel = scheduler is not None or (workers is not None and workers > 1)
     try:
-        for spec in build_specs(camp):
-            row = run_one(spec)
-            if row["outcome"] == "error":
-                raise ValueError(f"episode {spec.index} failed: {row['cause']}")
-            rows.append(row)
-            if on_episode is not None:
-                on_episode(row)
-            if bar is not None:
-                bar.update(1)
+        with open_client(scheduler, workers) if parallel else contextlib.nullcontext() as client:
+            for row in iter_results(build_specs(camp), client):
+                if row["outcome"] == "error":
+                    raise ValueError(f"episode {row['index']} failed: {row['cause']}")
+                rows.append(row)
+                if on_episode is not None:
+                    on_episode(row)
+                if bar is not None:
+                    bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    table = pd.DataFrame(rows)
+    if len(rows) != episodes:
+        raise ValueError(f"{episodes - len(rows)} of {episodes} episodes did not complete (a worker died)")
+    table = pd.DataFrame(rows).sort_values("index", kind="stable").reset_index(drop=True)
     return table, summarize(table)

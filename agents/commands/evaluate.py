@@ -20,6 +20,9 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=20, help="number of episodes (default 20)")
     p.add_argument("--seed", type=int, default=0, help="evaluation seed (episode i: campaign seed rule)")
     p.add_argument("--max-steps", type=int, default=None, help="cap on steps per episode")
+    p.add_argument("--workers", type=int, default=None,
+                   help="run episodes on a Dask LocalCluster with this many processes")
+    p.add_argument("--scheduler", default=None, help="or on a running Dask scheduler tcp://host:port")
     p.add_argument("--out", type=Path, default=None,
                    help="also write results.parquet and summary.json into this folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -33,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     table, summary = evaluate(
         args.model, env_id=args.env_id, perception=args.perception, episodes=args.episodes,
         seed=args.seed, max_steps=args.max_steps, progress=not args.no_progress,
+        workers=args.workers, scheduler=args.scheduler,
     )
     print(format_summary(summary, f"evaluate {args.model} on {args.env_id or 'its training id'} "
                                   f"(perception={args.perception}, seed={args.seed})"))

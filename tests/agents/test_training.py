@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from agents.campaign import CampaignConfig, build_specs, run_one
+from agents.cli import main
 from agents.training import (
     SB3Policy,
     TrainingConfig,
@@ -20,7 +21,6 @@ from agents.training import (
     train,
 )
 from perception.config import CONFIG_DIR, load_config
-from agents.cli import main
 from tridar_env.env import OBS_DIM
 
 TINY = {
@@ -116,6 +116,11 @@ def test_evaluate_reads_the_policy_back(trained):
     row = run_one(build_specs(camp, [1])[0])
     assert row["delta_v_m_s"] == table.loc[1, "delta_v_m_s"]
     assert row["episode_return"] == table.loc[1, "episode_return"]
+    # On a 2-worker LocalCluster: the same rows, in index order.
+    par, _ = evaluate(trained, perception="truth+noise", episodes=2, seed=4, max_steps=30,
+                      progress=False, workers=2)
+    assert list(par["index"]) == [0, 1]
+    np.testing.assert_array_equal(par["episode_return"], table["episode_return"])
 
 
 def test_cli_evaluate_prints_the_campaign_summary(trained, capsys, tmp_path):
@@ -217,3 +222,40 @@ def test_same_seed_same_policy(tmp_path):
     obs = np.linspace(-1, 1, OBS_DIM).astype(np.float32)
     np.testing.assert_array_equal(a._norm[0], b._norm[0])
     assert np.array_equal(a(obs), b(obs)) and not np.array_equal(a(obs), c(obs))
+
+
+def test_behaviour_cloning_warm_start_imitates_the_controller(tmp_path):
+    """The pretrained policy reproduces the glideslope's actions on its own demonstration states
+    far better than the same network without pretraining, and its observation statistics are
+    those of the demonstrations."""
+    from agents.training import PretrainConfig, collect_demonstrations, validate_training
+
+    pre = {"episodes": 3, "action_noise": 0.05, "epochs": 60, "learning_rate": 3e-3, "log_std": -2.0}
+    base = {**TINY, "vec_env": "dummy", "total_timesteps": 1, "checkpoint_every_steps": None,
+            "config": {"env__frame_skip": 5, "env__initial__range_m": 6.0}}
+    cold = load_policy(train(TrainingConfig(**base), tmp_path / "cold", progress=False).out_dir)
+    cfg = TrainingConfig(**{**base, "pretrain": pre})
+    warm_dir = train(cfg, tmp_path / "warm", progress=False).out_dir
+    warm = load_policy(warm_dir)
+    demos = collect_demonstrations(cfg, validate_training(cfg))
+    assert len(demos.outcomes) == 3 and len(demos.obs) == len(demos.actions) > 50
+
+    def mse(policy) -> float:
+        return float(np.mean([(policy(o) - a) ** 2 for o, a in zip(demos.obs, demos.actions)]))
+
+    assert mse(warm) < 0.2 * mse(cold)
+    # VecNormalize saw the demonstration states (plus the first reset of the training envs).
+    np.testing.assert_allclose(warm._norm[0], demos.obs.mean(axis=0), atol=0.05 * (1 + np.abs(demos.obs).max()))
+    stats = json.loads((warm_dir / "pretrain.json").read_text())
+    assert stats["episodes"] == 3 and stats["samples"] == len(demos.obs) and stats["log_std"] == -2.0
+    assert PretrainConfig(**pre).controller == "glideslope"
+
+
+def test_pretrain_is_only_for_ppo_and_names_a_known_controller():
+    from agents.training import validate_training
+    from perception.config import ConfigError
+
+    with pytest.raises(ConfigError, match="pretrain is set with algo='sac'"):
+        validate_training(TrainingConfig(**{**TINY, "algo": "sac", "hyperparams": {}, "pretrain": {}}))
+    with pytest.raises(ConfigError, match="pretrain.controller='nope' is unknown"):
+        validate_training(TrainingConfig(**{**TINY, "pretrain": {"controller": "nope"}}))

@@ -477,6 +477,15 @@ class EnvConfig(StrictModel):
     truth_noise_velocity_m_s: NonNegFloat = 0.002
     truth_noise_attitude_deg: NonNegFloat = 0.5
     truth_noise_rate_deg_s: NonNegFloat = 0.05
+    truth_noise_correlation_s: NonNegFloat = Field(
+        0.0, description="time constant of the truth+noise errors (first-order Gauss-Markov; 0: "
+        "independent each step). The pipeline's errors persist for seconds, not one frame"
+    )
+    truth_noise_reference: Literal["port", "center_of_mass"] = Field(
+        "port", description="point of the target where the truth+noise position error is applied: "
+        "the docking port (as the pipeline, which observes and filters about the port) or the "
+        "centre of mass (then attitude errors also move the port by the lever arm)"
+    )
     speed_limit_gain_s: PositiveFloat = Field(0.02, description="v_max = v0 + gain * range")
     speed_limit_floor_m_s: PositiveFloat = 0.08
     speed_profile_gain_s: NonNegFloat = Field(

@@ -2,7 +2,8 @@
 
 ``perception="tridar"`` runs the full pipeline (sensor -> modes -> estimators -> filter) on the
 truth scene; ``"truth"`` hands over the exact relative state (for ablations and fast training) and
-``"truth+noise"`` adds Gaussian errors with the configured standard deviations. All three return
+``"truth+noise"`` adds Gaussian errors with the configured standard deviations (optionally
+correlated in time and applied about the docking port). All three return
 the same :class:`~perception.state.StateVector`, so policies and controllers cannot tell the
 plumbing apart, only the quality.
 """
@@ -57,6 +58,9 @@ def state_from_truth(
     truth: SensorTruth,
     sigmas: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
     rng: np.random.Generator | None = None,
+    *,
+    errors: np.ndarray | None = None,
+    ref_point: np.ndarray | None = None,
 ) -> StateVector:
     """A tracking-mode state built from truth, optionally with Gaussian errors.
 
@@ -64,7 +68,11 @@ def state_from_truth(
         t: time [s].
         truth: true relative kinematics in the sensor frame.
         sigmas: 1-sigma errors (position [m], velocity [m/s], attitude [rad], rate [rad/s]).
-        rng: generator for the errors (required when any sigma > 0).
+        rng: generator for the errors (required when any sigma > 0 and ``errors`` is None).
+        errors: ``(12,)`` unit-variance error draws (position, velocity, rotation vector, rate),
+            e.g. a correlated sequence; drawn from ``rng`` when None.
+        ref_point: target-frame point where the position error applies (the attitude error
+            turns the target about it); None: the target origin (centre of mass).
     """
     p = truth.T_sensor_target[:3, 3].copy()
     v = truth.velocity.copy()
@@ -73,12 +81,20 @@ def state_from_truth(
     sigmas = tuple(float(s) for s in sigmas)
     sp, sv, sa, sw = sigmas
     if sp > 0 or sv > 0 or sa > 0 or sw > 0:
-        if rng is None:
-            raise ValueError("rng=None; a Generator is needed when noise sigmas are > 0")
-        e = rng.standard_normal(12)
-        p = p + sp * e[0:3]
+        if errors is None:
+            if rng is None:
+                raise ValueError("rng=None; a Generator is needed when noise sigmas are > 0")
+            errors = rng.standard_normal(12)
+        e = errors
+        R_est = Rotation.from_rotvec(sa * e[6:9]).as_matrix() @ R
+        if ref_point is None:
+            p = p + sp * e[0:3]
+        else:
+            # The reference point moves by the position error only; the rest of the target
+            # turns about it with the attitude error.
+            p = p + R @ ref_point + sp * e[0:3] - R_est @ ref_point
+        R = R_est
         v = v + sv * e[3:6]
-        R = Rotation.from_rotvec(sa * e[6:9]).as_matrix() @ R
         w = w + sw * e[9:12]
     rng_m = math.sqrt(float(p @ p))
     return StateVector(
@@ -99,22 +115,50 @@ def state_from_truth(
 
 
 class TruthObserver:
-    """The exact relative state (``perception="truth"``) or truth plus noise (``"truth+noise"``)."""
+    """The exact relative state (``perception="truth"``) or truth plus noise (``"truth+noise"``).
 
-    def __init__(self, cfg: MissionConfig, noisy: bool) -> None:
+    The noisy errors are first-order Gauss-Markov with time constant
+    ``env.truth_noise_correlation_s`` (stationary 1-sigma = the configured sigmas; 0 gives
+    independent errors each step), applied at ``env.truth_noise_reference`` (the docking port by
+    default, like the pipeline's estimates, which are best where the sensor looks).
+    """
+
+    def __init__(self, cfg: MissionConfig, noisy: bool, target: TargetModel | None = None) -> None:
         e = cfg.env
         self.sigmas = (
             (e.truth_noise_position_m, e.truth_noise_velocity_m_s,
              float(np.deg2rad(e.truth_noise_attitude_deg)), float(np.deg2rad(e.truth_noise_rate_deg_s)))
             if noisy else (0.0, 0.0, 0.0, 0.0)
         )
+        self.noisy = noisy and any(s > 0 for s in self.sigmas)
+        self.tau = e.truth_noise_correlation_s
+        self.ref_point = None
+        if e.truth_noise_reference == "port" and target is not None:
+            self.ref_point = np.array(target.T_target_port[:3, 3], dtype=np.float64)
         self.last_cloud = None
+        self._err: np.ndarray | None = None
+        self._t_err = 0.0
 
     def reset(self, rng: np.random.Generator) -> None:
         del rng
+        self._err = None
+
+    def _errors(self, t: float, rng: np.random.Generator) -> np.ndarray:
+        w = rng.standard_normal(12)
+        if self._err is None or self.tau <= 0.0:
+            self._err = w
+        else:
+            phi = math.exp(-max(t - self._t_err, 0.0) / self.tau)
+            self._err = phi * self._err + math.sqrt(1.0 - phi * phi) * w
+        self._t_err = t
+        return self._err
 
     def observe(self, world: World, rng: np.random.Generator) -> StateVector:
-        return state_from_truth(world.t, world.sensor_truth(), self.sigmas, rng)
+        if not self.noisy:
+            return state_from_truth(world.t, world.sensor_truth())
+        e = self._errors(world.t, rng)
+        return state_from_truth(world.t, world.sensor_truth(), self.sigmas, errors=e,
+                                ref_point=self.ref_point)
 
 
 class TriDARObserver:
@@ -143,5 +187,5 @@ def make_observer(cfg: MissionConfig, target: TargetModel) -> Observer:
     if kind == "truth":
         return TruthObserver(cfg, noisy=False)
     if kind == "truth+noise":
-        return TruthObserver(cfg, noisy=True)
+        return TruthObserver(cfg, noisy=True, target=target)
     return TriDARObserver(cfg, target)

@@ -28,15 +28,21 @@ body such as CYGNSS from its half-turn flip, which fits the visible points as we
 hypothesis is always verified against its near-symmetric alternatives (the turns that map the
 model nearly onto itself, found once per target), so the flip competes even when no polygon
 produced it. More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
-with (almost) no free-space violation, or the polygon or time budget runs out; the winner is
-refined by a full ICP and a small basin hop (sparse, noisy scans leave shallow ICP minima a few
-degrees off).
+with (almost) no free-space violation, or the polygon or time budget runs out (default budgets
+:data:`DEFAULT_TIME_BUDGET_S` and :data:`DEFAULT_CONSTRAINED_TIME_BUDGET_S`; running out before a
+hypothesis explained the scan gives ``converged=False`` and says so). The leader and runners-up in
+other basins are refined by a full ICP along the measured rays (each point matched to the face its
+ray crosses) and the best verified one is returned.
 
 Constrained search (section 5.3, the docking case): a :class:`PoseConstraint` bounds the attitude
-about a nominal one and the position to a cone about the boresight and a range interval. Because
-the attitude is bounded, every polygon edge must point, once rotated by the nominal attitude,
-within the attitude tolerance of the scan edge: this prunes the tree at every level, so
-constrained acquisition costs a small fraction of the unconstrained one.
+about a nominal one and the position to a cone about the boresight and a range interval. The tree
+is pruned as early as possible: every polygon edge must point, once rotated by the nominal
+attitude, within the attitude tolerance of the scan edge (from the first edge on); from the first
+triangle on, its pose must be admitted (attitude, and the implied target origin in the cone and
+range) and the matched model normals must face the sensor; matches that differ only by
+neighbouring model points are merged at the triangle; and each further vertex is the model point
+nearest to where the triangle's pose puts it. The alternatives of a leader that the corridor
+excludes are never tried. Constrained acquisition costs a small fraction of the unconstrained one.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ import json
 import math
 import time
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,10 +75,22 @@ from perception.targets import TargetModel
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-__all__ = ["PAH_FORMAT_VERSION", "PAHDatabase", "PoseConstraint"]
+__all__ = [
+    "DEFAULT_CONSTRAINED_TIME_BUDGET_S",
+    "DEFAULT_TIME_BUDGET_S",
+    "PAH_FORMAT_VERSION",
+    "PAHDatabase",
+    "PoseConstraint",
+]
 
 #: Version of the ``.npz`` layout written by :meth:`PAHDatabase.save`.
 PAH_FORMAT_VERSION = 1
+
+#: Default wall-clock budgets [s] of :meth:`PAHDatabase.localize`, unconstrained and in a corridor.
+#: Seed 000 section 5.3: docking (corridor) acquisition took under a second on the flight
+#: computer, unconstrained 5-10 s; a typical acquisition here takes a small fraction of either.
+DEFAULT_TIME_BUDGET_S = 5.0
+DEFAULT_CONSTRAINED_TIME_BUDGET_S = 1.0
 
 # Dense samples the sparse set is drawn from (shared with ICP's prepared model).
 _DENSE_POINTS = 20_000
@@ -142,7 +161,7 @@ class PoseConstraint:
         error about ``R_sensor_target_nominal``; the range limits are copied.
         """
         if not isinstance(cfg, CorridorConfig):
-            raise ValueError(f"cfg is a {type(cfg).__name__}; expected a CorridorConfig")
+            raise ValueError(f"cfg is a {type(cfg).__name__}; expected a CorridorConfig")  # noqa: TRY004
         return cls(
             R_sensor_target_nominal=np.asarray(R_sensor_target_nominal, dtype=np.float64),
             attitude_tol_rad=math.radians(cfg.attitude_tolerance_deg),
@@ -362,6 +381,7 @@ class PAHDatabase:
         self.seg_i, self.seg_j, self.seg_len = seg_i, seg_j, seg_len
         self.bin_ptr = bin_ptr
         self.dist = dist
+        self._cluster_cache: dict[float, tuple[IntArray, int]] = {}
         self.max_length_m = float(seg_len[-1]) if seg_len.size else 0.0
         self.target: TargetModel | None = None
         if target is not None:
@@ -393,10 +413,10 @@ class PAHDatabase:
                 no surface.
         """
         if not isinstance(target, TargetModel):
-            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")
+            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")  # noqa: TRY004
         cfg = PAHConfig() if config is None else config
         if not isinstance(cfg, PAHConfig):
-            raise ValueError(f"config is a {type(cfg).__name__}; expected a PAHConfig")
+            raise ValueError(f"config is a {type(cfg).__name__}; expected a PAHConfig")  # noqa: TRY004
         if len(target.mesh.faces) == 0 or not float(target.mesh.area) > 0:
             raise ValueError(f"target {target.name!r} has no surface; PAH needs a mesh with area")
         dense_pts, dense_nrm = target.sample_surface(_DENSE_POINTS, seed=int(seed))
@@ -432,7 +452,7 @@ class PAHDatabase:
             ValueError: not a TargetModel, or a target with different geometry.
         """
         if not isinstance(target, TargetModel):
-            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")
+            raise ValueError(f"target is a {type(target).__name__}; expected a TargetModel")  # noqa: TRY004
         if target.model_hash != self.model_hash:
             raise ValueError(
                 f"target {target.name!r} has model hash {target.model_hash[:12]}...; this PAH "
@@ -516,6 +536,10 @@ class PAHDatabase:
         rng: np.random.Generator,
         R_nominal: npt.ArrayLike | None = None,
         direction_tol_rad: float | None = None,
+        *,
+        constraint: PoseConstraint | None = None,
+        rays: npt.ArrayLike | None = None,
+        merge_m: float | None = None,
     ) -> IntArray:
         """All model polygons whose pairwise distances match a scan polygon's (partial traversal).
 
@@ -523,6 +547,20 @@ class PAHDatabase:
         points whose distances to the already matched vertices all match, found as the AND of
         rows of the connectivity table banded at ``|dist - d_vk| <= tol`` (one boolean row per
         partial match, vectorised over the partial matches).
+
+        Partial matches are pruned as early as they can be judged, so that the tree stays small:
+
+        - direction (``R_nominal``): each rotated model edge ``R_nominal (s_k - s_0)`` must point
+          within the tolerance of the scan edge ``q_k - q_0``, from the first edge on;
+        - corridor (``constraint``): from the first triangle on, its pose (frames on the three
+          vertices) must have an admitted attitude and put the target origin in the corridor's
+          cone and range, both widened by what the length tolerance allows;
+        - visibility (``rays``): the matched model normals must not face away from the rays;
+        - merging (``merge_m``): partial matches whose triangle poses put the model within about
+          ``merge_m`` of each other are one match (the scan vertex lies between several sparse
+          model points, each of which matches within the tolerance); the one whose edge lengths
+          match best is kept. Without it the candidates multiply by the number of model points
+          within the tolerance at every level.
 
         Args:
             Q: (N, 3) scan polygon [m], sensor frame.
@@ -532,6 +570,10 @@ class PAHDatabase:
             direction_tol_rad: angle [rad] the rotated model edge ``R_nominal (s_k - s_0)`` may make
                 with the scan edge ``q_k - q_0`` (the attitude tolerance; widened here by the length
                 tolerance). Both or neither of ``R_nominal`` and this.
+            constraint: approach corridor; implies the direction pruning with its nominal attitude
+                and tolerance unless those are given.
+            rays: (N, 3) unit ray directions of the scan vertices, sensor frame.
+            merge_m: merge distance [m] of partial-match poses (None: no merging).
 
         Returns:
             (K, N) model-point indices, row k matching ``Q`` vertex by vertex.
@@ -539,18 +581,31 @@ class PAHDatabase:
         Qa = np.asarray(Q, dtype=np.float64)
         if Qa.ndim != 2 or Qa.shape[1] != 3 or Qa.shape[0] < 3:
             raise ValueError(f"Q has shape {Qa.shape}; expected an (N, 3) polygon with N >= 3")
+        if (R_nominal is None) != (direction_tol_rad is None):
+            raise ValueError("R_nominal and direction_tol_rad go together; got only one of them")
+        if constraint is not None and R_nominal is None:
+            R_nominal = constraint.R_sensor_target_nominal
+            direction_tol_rad = constraint.attitude_tol_rad
         n_poly = Qa.shape[0]
+        ray_a = None if rays is None else np.asarray(rays, dtype=np.float64)
+        if ray_a is not None and ray_a.shape != Qa.shape:
+            raise ValueError(f"rays has shape {ray_a.shape}; expected {Qa.shape} like Q")
         dq = np.linalg.norm(Qa[:, None, :] - Qa[None, :, :], axis=-1)
         cap = int(self.config.max_candidates)
         S = self.points
-        use_dir = R_nominal is not None and direction_tol_rad is not None
+        use_dir = R_nominal is not None
         E = (Qa - Qa[0]) @ np.asarray(R_nominal, dtype=np.float64) if use_dir else None
 
         def dir_ok(k: int, model_vec: FloatArray) -> npt.NDArray[np.bool_]:
+            assert E is not None and direction_tol_rad is not None
             slack = math.asin(min(1.0, 2.0 * tolerance_m / max(dq[0, k], 1e-9)))
             lim = math.cos(min(math.pi, float(direction_tol_rad) + slack))
             ln = np.linalg.norm(model_vec, axis=1) * dq[0, k]
             return model_vec @ E[k] >= lim * ln
+
+        def visible(k: int, idx: IntArray, R: FloatArray) -> npt.NDArray[np.bool_]:
+            assert ray_a is not None
+            return np.einsum("kij,kj->ki", R, self.normals[idx]) @ ray_a[k] < _VISIBLE_COS
 
         # Level 1: the first edge, direct lookup by quantised length (both orientations).
         d = dq[0, 1]
@@ -578,10 +633,95 @@ class PAHDatabase:
             if use_dir and new.shape[0]:
                 keep_dir = dir_ok(k, S[new] - S[cand[owner, 0]])
                 owner, new = owner[keep_dir], new[keep_dir]
-            cand = self._cap(np.concatenate([cand[owner], new[:, None]], axis=1), cap, rng)
+            if k >= 3 and new.shape[0]:
+                # Past the first triangle its pose predicts where the vertex lies on the model:
+                # of the points in the distance bands (about that spot and its mirror image
+                # through the triangle's plane), keep the nearest to the prediction.
+                R, t = _triangle_poses(S[cand[:, :3]], Qa[:3])
+                s_pred = np.einsum("kji,kj->ki", R, Qa[k] - t)
+                miss = np.linalg.norm(S[new] - s_pred[owner], axis=1)
+                order = np.lexsort((miss, owner))
+                first = np.r_[True, owner[order][1:] != owner[order][:-1]]
+                sel = order[first]
+                owner, new = owner[sel], new[sel]
+            cand = np.concatenate([cand[owner], new[:, None]], axis=1)
+            if merge_m and k == 2 and cand.shape[0] > 1:
+                cand = self._merge(cand, dq, merge_m)
+            cand = self._cap(cand, cap, rng)
+            if cand.shape[0] and (constraint is not None or ray_a is not None):
+                cand = self._prune_partial(cand, Qa, dq, tolerance_m, constraint,
+                                           visible if ray_a is not None else None)
         if cand.shape[0] == 0 or cand.shape[1] < n_poly:
             return np.empty((0, n_poly), dtype=np.int64)
         return cand
+
+    def _merge(self, cand: IntArray, dq: FloatArray, merge_m: float) -> IntArray:
+        """One partial match (K, k) per tuple of model-point clusters: the best-fitting one."""
+        k = cand.shape[1]
+        cluster, n_clusters = self._clusters(merge_m)
+        key = np.zeros(cand.shape[0], dtype=np.int64)
+        for v in range(k):
+            key = key * n_clusters + cluster[cand[:, v]]
+        misfit = np.zeros(cand.shape[0])
+        for i in range(k):
+            for j in range(i + 1, k):
+                misfit += np.abs(self.dist[cand[:, i], cand[:, j]] - dq[i, j])
+        order = np.lexsort((misfit, key))
+        ks = key[order]
+        first = np.r_[True, ks[1:] != ks[:-1]]
+        return cand[np.sort(order[first])]
+
+    def _clusters(self, merge_m: float) -> tuple[IntArray, int]:
+        """Model points grouped about farthest-point centres ``merge_m`` [m] apart: (M,) ids, count.
+
+        Matches that differ only by neighbouring model points of one group give the same pose
+        within the tolerance. Cached per merge distance (rounded to 1 cm).
+        """
+        key = max(round(merge_m, 2), 0.01)
+        hit = self._cluster_cache.get(key)
+        if hit is None:
+            S = self.points
+            centres = [0]
+            d = np.linalg.norm(S - S[0], axis=1)
+            while d.max() > key and len(centres) < S.shape[0]:
+                centres.append(int(np.argmax(d)))
+                d = np.minimum(d, np.linalg.norm(S - S[centres[-1]], axis=1))
+            _, ids = cKDTree(S[centres]).query(S, k=1)
+            hit = (ids.astype(np.int64), len(centres))
+            self._cluster_cache[key] = hit
+        return hit
+
+    def _prune_partial(
+        self,
+        cand: IntArray,
+        Q: FloatArray,
+        dq: FloatArray,
+        tol: float,
+        constraint: PoseConstraint | None,
+        visible: Callable[[int, IntArray, FloatArray], npt.NDArray[np.bool_]] | None,
+    ) -> IntArray:
+        """Corridor and visibility tests of partial matches (K, k >= 3) by their triangle poses."""
+        k = cand.shape[1]
+        Sk = self.points[cand]
+        R, _ = _triangle_poses(Sk[:, :3], Q[:3])
+        keep = np.ones(cand.shape[0], dtype=bool)
+        if constraint is not None:
+            # A vertex may sit up to ~tol from its model point: the frame's axes then turn by up
+            # to asin(2 tol / edge) about each of two axes.
+            h = np.linalg.norm(np.cross(Q[1] - Q[0], Q[2] - Q[0])) / max(dq[0, 1], 1e-9)
+            slack = sum(math.asin(min(1.0, 2.0 * tol / max(x, 1e-9))) for x in (dq[0, 1], h))
+            keep &= constraint.attitude_ok(R, slack_rad=slack)
+            # Target origin, from the centroid of the matched vertices; its lever arm turns by
+            # the attitude slack.
+            sc = Sk.mean(axis=1)
+            t = Q[:k].mean(axis=0) - np.einsum("kij,kj->ki", R, sc)
+            lever = np.linalg.norm(sc, axis=1).max()
+            keep &= constraint.position_ok(t, slack_m=tol + float(lever) * min(slack, 2.0))
+        if visible is not None:
+            # The first triangle's pose serves every level: check each vertex once.
+            for v in range(k) if k == 3 else (k - 1,):
+                keep[keep] &= visible(v, cand[keep, v], R[keep])
+        return cand[keep]
 
     @staticmethod
     def _cap(cand: IntArray, cap: int, rng: np.random.Generator) -> IntArray:
@@ -603,6 +743,7 @@ class PAHDatabase:
         constraint: PoseConstraint | None = None,
         sigma: float | npt.ArrayLike | None = None,
         max_time_s: float | None = None,
+        directions: npt.ArrayLike | None = None,
     ) -> RegistrationResult:
         """Find the target pose in a scan without an initial guess (seed 000 section 3.1.2).
 
@@ -612,16 +753,22 @@ class PAHDatabase:
         whole scan, surface fit and free space (so that near-symmetric alternatives are
         compared, not the first one taken); the leader's near-symmetric alternatives are
         verified too. It stops when a verified leader scores ``accept_fitness`` with (almost) no
-        free-space violation, or the polygon or time budget is spent; the best hypothesis is
-        then refined by a full ICP and a basin hop.
+        free-space violation, or the polygon or time budget is spent; the best hypothesis, and
+        runners-up in other basins, are then refined by a full ICP and the best verified one wins.
 
         Args:
             points: (N, 3) scan points [m], sensor frame (non-finite rows are ignored).
             rng: the only source of randomness (polygon seeds, decimation, candidate caps).
             constraint: approach corridor; candidates outside it are dropped before any fit check.
             sigma: range noise 1-sigma [m], a float or (N,) per point; default 0.01 m.
-            max_time_s: wall-clock budget [s]; when it runs out the best hypothesis so far is
-                refined and returned.
+            max_time_s: wall-clock budget [s], checked before each polygon; when it runs out the
+                best hypothesis so far is refined and returned with ``converged=False`` unless it
+                explains the scan. None: :data:`DEFAULT_TIME_BUDGET_S` unconstrained,
+                :data:`DEFAULT_CONSTRAINED_TIME_BUDGET_S` with a constraint; ``math.inf``: none.
+                A budget makes the result depend on the machine's speed when it runs out.
+            directions: (N, 3) measured ray directions [sensor frame] (``PointCloud.directions``);
+                default: the lines of sight ``points / |points|``. Every ICP matches points to
+                the face their ray crosses, and the free-space test casts these rays.
 
         Returns:
             The ICP-refined :class:`RegistrationResult` of the best hypothesis; ``iterations`` is
@@ -631,18 +778,24 @@ class PAHDatabase:
 
         Raises:
             ValueError: points not (N, 3), ``rng`` not a Generator, a bad ``constraint``,
-                ``sigma`` or ``max_time_s``, or a database without a target.
+                ``sigma``, ``max_time_s`` or ``directions``, or a database without a target.
         """
         t_start = time.perf_counter()
         P_all = validate_points(points, "points")
         if not isinstance(rng, np.random.Generator):
-            raise ValueError(f"rng={rng!r}; expected a numpy.random.Generator")
+            raise ValueError(f"rng={rng!r}; expected a numpy.random.Generator")  # noqa: TRY004
         if constraint is not None and not isinstance(constraint, PoseConstraint):
             raise ValueError(f"constraint is a {type(constraint).__name__}; expected PoseConstraint")
-        if max_time_s is not None and not (
-            isinstance(max_time_s, (int, float)) and math.isfinite(max_time_s) and max_time_s > 0
+        if max_time_s is None:
+            max_time_s = (
+                DEFAULT_TIME_BUDGET_S if constraint is None else DEFAULT_CONSTRAINED_TIME_BUDGET_S
+            )
+        if not (
+            isinstance(max_time_s, (int, float)) and not math.isnan(max_time_s) and max_time_s > 0
         ):
-            raise ValueError(f"max_time_s={max_time_s!r}; expected a finite budget > 0 [s] or None")
+            raise ValueError(
+                f"max_time_s={max_time_s!r}; expected a budget > 0 [s] (math.inf: none) or None"
+            )
         if self.target is None:
             raise ValueError(
                 f"PAH database of {self.target_name!r} has no target; pass target= to load() or "
@@ -650,6 +803,15 @@ class PAHDatabase:
             )
         sig_all = per_point_sigma(sigma, P_all.shape[0])
         ok = np.all(np.isfinite(P_all), axis=1) & np.isfinite(sig_all)
+        if directions is not None:
+            D_all = np.asarray(directions, dtype=np.float64)
+            if D_all.shape != P_all.shape:
+                raise ValueError(
+                    f"directions has shape {D_all.shape}; expected {P_all.shape} like points"
+                )
+            with np.errstate(invalid="ignore", divide="ignore"):
+                D_all = D_all / np.linalg.norm(D_all, axis=1, keepdims=True)
+            ok &= np.all(np.isfinite(D_all), axis=1)
         P = np.ascontiguousarray(P_all[ok])
         sig = sig_all[ok]
         n = P.shape[0]
@@ -681,7 +843,9 @@ class PAHDatabase:
         score_thr = 3.0 * sig + mc.spacing
         pre = P[rng.choice(n, size=min(n, int(cfg.precheck_points)), replace=False)]
         pre_a = pre[: max(10, int(cfg.precheck_points) // 4)]
-        rays = P / rng_norm[:, None]
+        # The measured rays when given, else the lines of sight: ICP matches each point to the
+        # face its ray crosses, and the free-space test casts them.
+        rays = P / rng_norm[:, None] if directions is None else np.ascontiguousarray(D_all[ok])
         scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
@@ -691,19 +855,22 @@ class PAHDatabase:
         n_cands = n_admitted = polygons = 0
         stop = ""
         for _ in range(int(cfg.max_polygons)):
-            if max_time_s is not None and elapsed() > max_time_s:
-                stop = f"time budget {max_time_s:.3g} s spent"
+            if elapsed() > max_time_s:
+                stop = f"time budget {max_time_s:.3g} s spent after {polygons} polygons"
                 break
             polygons += 1
             poly = _pick_polygon(P, n_poly, max_extent, rng)
             if poly is None:
                 continue
             Q = P[poly]
-            cand = self.match_polygon(
-                Q, tol, rng,
-                R_nominal=None if constraint is None else constraint.R_sensor_target_nominal,
-                direction_tol_rad=None if constraint is None else constraint.attitude_tol_rad,
-            )
+            # Constrained, the corridor and visibility prune the tree and near-identical matches
+            # merge at the first triangle; unconstrained, all poses are plausible, that pruning
+            # costs more than it saves, and the fit checks below take the many matches in stride.
+            if constraint is None:
+                cand = self.match_polygon(Q, tol, rng)
+            else:
+                cand = self.match_polygon(Q, tol, rng, constraint=constraint, rays=rays[poly],
+                                          merge_m=_MERGE_FRACTION * tol)
             n_cands += cand.shape[0]
             if cand.shape[0] == 0:
                 continue
@@ -750,31 +917,78 @@ class PAHDatabase:
             if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
         if best is None:
-            why = stop or (
+            why = (
                 f"no admissible candidate in {polygons} polygons ({n_cands} matches, "
                 f"{n_admitted} passed the pose checks)"
             )
+            why = f"{stop}; {why}" if stop else why
             return RegistrationResult.failure(why, n_points=n, time_s=elapsed(),
                                               iterations=polygons)
-        res = icp(P, mc, best.T, sigma=sig)
-        if not res.converged:
-            # Slow convergence along a weakly observed direction: one more pass from where it got.
-            res = icp(P, mc, res.T_sensor_target, sigma=sig)
-        res = self._hop(scan, res, mc, screen_cfg)
+        res, final_fit, final_fs = self._refine(scan, hyps, best, mc, constraint)
         notes = []
-        final_fit, _, final_fs = self._verify(scan, res.T_sensor_target[None], mc)
-        if final_fit[0] < cfg.accept_fitness:
-            notes.append(f"fit score {final_fit[0]:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
-        if final_fs[0] > max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / n):
-            notes.append(f"{100 * final_fs[0]:.1f} % of the points lie behind the model surface")
+        if final_fit < cfg.accept_fitness:
+            notes.append(f"fit score {final_fit:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
+        if final_fs > max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / n):
+            notes.append(f"{100 * final_fs:.1f} % of the points lie behind the model surface")
         if constraint is not None and not constraint.admits(res.T_sensor_target):
             notes.append("refined pose outside the corridor")
         if notes:
             res.reason = "; ".join([*notes, *(s for s in (stop, res.reason) if s)])
+            if stop:
+                # Out of time before any hypothesis explained the scan: the pose is a best
+                # guess, not an acquisition.
+                res.converged = False
         elif not res.converged:
             res.reason = res.reason or "ICP refinement did not converge"
         res.time_s = elapsed()
         return res
+
+    def _refine(
+        self,
+        scan: _Scan,
+        hyps: list[_Hypothesis],
+        best: _Hypothesis,
+        mc: ModelCloud,
+        constraint: PoseConstraint | None,
+    ) -> tuple[RegistrationResult, float, float]:
+        """Full ICP from the leader and from runners-up in other basins; the best verified wins.
+
+        After the short screening ICP a near-symmetric pose (the quarter turn of a square body,
+        the flip of a long one) can trail the truth by a hair, or lead it; refined fully, the
+        truth usually fits better. Runners-up within ``_RUNNER_UP_MARGIN`` of the leader's score
+        and at least ``_BASIN_RAD`` / ``_BASIN_M`` from every start are refined too (at most
+        ``_FINAL_STARTS`` starts), and all results are verified in one batch.
+
+        Returns:
+            The winning ICP result, its fit score and its free-space violation fraction.
+        """
+        ranked = sorted(
+            (h for h in hyps if constraint is None or constraint.admits(h.T)),
+            key=lambda h: -h.score,
+        )
+        starts = [best]
+        for h in ranked:
+            if len(starts) >= _FINAL_STARTS or h.score < best.score - _RUNNER_UP_MARGIN:
+                break
+            if not any(_same_pose(h.T, u.T, _BASIN_M, _BASIN_RAD) for u in starts):
+                starts.append(h)
+        results = []
+        for h in starts:
+            r = icp(scan.P, mc, h.T, sigma=scan.sigma, directions=scan.rays, match_along_rays=True)
+            if not r.converged:
+                # Slow convergence along a weakly observed direction: one more pass.
+                r = icp(scan.P, mc, r.T_sensor_target, sigma=scan.sigma, directions=scan.rays,
+                        match_along_rays=True)
+            results.append(r)
+        Ts = np.stack([r.T_sensor_target for r in results])
+        fit, like, fs = self._verify(scan, Ts, mc)
+        score = like - _UNEXPLAINED_PENALTY * ((1.0 - fit) + fs)
+        if constraint is not None:
+            inside = constraint.admits_batch(Ts)
+            if inside.any():
+                score = np.where(inside, score, -np.inf)
+        k = int(np.argmax(score))
+        return results[k], float(fit[k]), float(fs[k])
 
     def _screen(
         self,
@@ -787,7 +1001,8 @@ class PAHDatabase:
         """Short ICP from each start pose, then one batched verification of the distinct results."""
         Ts: list[FloatArray] = []
         for T0 in starts:
-            T = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg).T_sensor_target
+            T = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
+                    match_along_rays=True).T_sensor_target
             if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
                 Ts.append(T)
         if not Ts:
@@ -826,31 +1041,6 @@ class PAHDatabase:
         order = np.argsort(-fit, kind="stable")[:_ALTERNATIVES_SCREENED]
         starts = [Ts[i] for i in order if fit[i] >= 0.5 * h.fitness]
         return self._screen(scan, starts, known, mc, icp_cfg)
-
-    def _hop(
-        self, scan: _Scan, res: RegistrationResult, mc: ModelCloud, icp_cfg: ICPConfig
-    ) -> RegistrationResult:
-        """Escape a shallow ICP minimum a few degrees from the truth (sparse, noisy scans).
-
-        The refined pose is turned by +-``_HOP_RAD`` about each sensor axis through the scan
-        centroid; each start gets the short ICP and all are verified together. If one scores
-        better than the refined pose, the full ICP is rerun from it.
-        """
-        T_f = res.T_sensor_target
-        c = scan.P.mean(axis=0)
-        starts = []
-        for axis in np.eye(3):
-            for sgn in (-1.0, 1.0):
-                Rk = _rotvec_matrix(sgn * _HOP_RAD * axis)
-                starts.append(_pose(Rk, c - Rk @ c) @ T_f)
-        Ts = [T_f] + [icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg).T_sensor_target
-                      for T0 in starts]
-        fit, like, fs = self._verify(scan, np.stack(Ts), mc)
-        score = like - _UNEXPLAINED_PENALTY * ((1.0 - fit) + fs)
-        k = int(np.argmax(score))
-        if k == 0 or score[k] <= score[0] + _HOP_MIN_GAIN:
-            return res
-        return icp(scan.P, mc, Ts[k], sigma=scan.sigma)
 
     def _verify(
         self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True
@@ -975,6 +1165,8 @@ class PAHDatabase:
         return keep
 
 
+# Partial polygon matches whose poses agree within this fraction of the length tolerance merge.
+_MERGE_FRACTION = 1.0
 # Candidates kept after the first (quarter-size) precheck, and sent on to the full check.
 _PRECHECK_KEEP = 256
 _FULL_CHECK = 16
@@ -999,11 +1191,14 @@ _SYMMETRY_SAMPLES = 600
 # Two rotations closer than ~25 deg (trace of R_a^T R_b above this) count as one turn.
 _TURN_MIN_TRACE = 1.0 + 2.0 * math.cos(math.radians(25.0))
 _SYMMETRY_ICP_STEPS = 6
-# Final basin hop: turn of each start [rad], and the score gain that makes a hop worth taking.
-_HOP_RAD = math.radians(3.0)
-_HOP_MIN_GAIN = 1e-3
+# Final refinement: runners-up within this score of the leader, in another basin (farther than
+# _BASIN_M or _BASIN_RAD from every start), get the full ICP too; at most _FINAL_STARTS starts.
+_RUNNER_UP_MARGIN = 0.15
+_BASIN_M = 0.1
+_BASIN_RAD = math.radians(10.0)
+_FINAL_STARTS = 3
 # Alternatives of a leader that get the short ICP (best raw fit first).
-_ALTERNATIVES_SCREENED = 4
+_ALTERNATIVES_SCREENED = 8
 
 
 @dataclass(eq=False)
@@ -1040,16 +1235,6 @@ def _cube_group() -> FloatArray:
 
 
 _CUBE_GROUP = _cube_group()
-
-
-def _rotvec_matrix(phi: FloatArray) -> FloatArray:
-    """Rotation matrix of a rotation vector [rad] (Rodrigues)."""
-    a = float(np.linalg.norm(phi))
-    if a < 1e-12:
-        return np.eye(3)
-    k = phi / a
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * (K @ K)
 
 
 def _pose(R: FloatArray, t: FloatArray) -> FloatArray:

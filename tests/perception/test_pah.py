@@ -12,7 +12,15 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import CorridorConfig, PAHConfig, SensorConfig
 from perception.geometry import make_T, pose_error, transform_points
-from perception.pah import PAH_FORMAT_VERSION, PAHDatabase, PoseConstraint, _Hypothesis, _Scan
+from perception.pah import (
+    PAH_FORMAT_VERSION,
+    PAHDatabase,
+    PoseConstraint,
+    _Hypothesis,
+    _kabsch_batch,
+    _pick_polygon,
+    _Scan,
+)
 from perception.registration import icp, prepare_model
 from perception.sensors import TriDARSensor
 from perception.targets import TargetModel, load_target
@@ -185,6 +193,45 @@ def test_direction_pruning_keeps_the_true_polygon_only_in_the_corridor(
     assert 5 * near.shape[0] < free.shape[0]
 
 
+def test_corridor_pruning_never_discards_the_true_pose(cubesat_db: PAHDatabase) -> None:
+    # Polygons picked from real scans: whenever the free search finds a match near the true pose,
+    # the corridor-pruned, merged search (corridor about the truth) finds one too, from far fewer.
+    db = cubesat_db
+    n_near = 0
+    for seed in range(6):
+        rng = np.random.default_rng([51, seed])
+        T = random_pose(rng, 2.0, 10.0)
+        cloud = scan(db.target, T, rng)
+        P = cloud.points
+        R_nom = Rotation.from_rotvec(rng.normal(scale=math.radians(5.0), size=3)).as_matrix()
+        corridor = PoseConstraint(R_nom @ T[:3, :3], math.radians(20), math.radians(15), 1.0, 30.0)
+        assert corridor.admits(T)
+        tol = max(0.05, db.coverage_m) + 2.0 * float(np.median(cloud.sigma))
+        for _ in range(2):
+            poly = _pick_polygon(P, 4, db.max_length_m + 2 * tol, rng)
+            assert poly is not None
+            Q = P[poly]
+
+            def best_error(
+                cand: np.ndarray, Q: np.ndarray = Q, T: np.ndarray = T
+            ) -> tuple[float, float]:
+                if cand.shape[0] == 0:
+                    return math.inf, math.inf
+                R, t = _kabsch_batch(db.points[cand], Q)
+                errs = [pose_error(make_T(Rk, tk), T) for Rk, tk in zip(R, t)]
+                return min(errs, key=lambda e: e[1])
+
+            free = db.match_polygon(Q, tol, rng)
+            pruned = db.match_polygon(Q, tol, rng, constraint=corridor,
+                                      rays=cloud.directions[poly], merge_m=tol)
+            e_free, e_pruned = best_error(free), best_error(pruned)
+            if e_free[1] < 10.0 and e_free[0] < 0.15:
+                n_near += 1
+                assert e_pruned[1] < 12.0 and e_pruned[0] < 0.15, (seed, e_free, e_pruned)
+                assert pruned.shape[0] < free.shape[0]
+    assert n_near >= 5  # the property was exercised (7 of the 12 polygons)
+
+
 # ---------------------------------------------------------------------------------------------
 # Localization
 # ---------------------------------------------------------------------------------------------
@@ -276,6 +323,43 @@ def test_constrained_search_rejects_out_of_corridor_candidates(cubesat_db: PAHDa
         assert e_deg > 45.0
         assert res.reason != ""
         assert (not res.converged and res.n_inliers == 0) or bad.admits(res.T_sensor_target)
+
+
+def test_time_budget_exceeded_is_not_converged_with_a_reason(cubesat_db: PAHDatabase) -> None:
+    rng = np.random.default_rng(61)
+    T = random_pose(rng)
+    cloud = scan(cubesat_db.target, T, rng)
+    # A budget spent before the first polygon: nothing to refine, and the reason says why.
+    res = cubesat_db.localize(cloud.points, np.random.default_rng(0), sigma=cloud.sigma,
+                              max_time_s=1e-9)
+    assert not res.converged
+    assert "time budget" in res.reason and "0 polygons" in res.reason
+    np.testing.assert_array_equal(res.T_sensor_target, np.eye(4))
+    # No budget at all (math.inf) and the default both acquire this easy scan.
+    for budget in (math.inf, None):
+        res = cubesat_db.localize(cloud.points, np.random.default_rng(0), sigma=cloud.sigma,
+                                  max_time_s=budget, directions=cloud.directions)
+        e_m, e_deg = pose_error(res.T_sensor_target, T)
+        assert res.converged and res.reason == "" and e_m < 0.05 and e_deg < 2.0, res.reason
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="max_time_s"):
+            cubesat_db.localize(cloud.points, rng, max_time_s=bad)
+    with pytest.raises(ValueError, match="directions"):
+        cubesat_db.localize(cloud.points, rng, directions=cloud.directions[:5])
+
+
+def test_quarter_turn_leader_gives_way_to_the_truth(cubesat_db: PAHDatabase) -> None:
+    # A benchmark case (seeds as in `bench registration`) where the first verified leader is a
+    # quarter turn about the cubesat's long axis: it explains the scan as well as the truth after
+    # the short ICP, and only refining its near-symmetric alternatives finds the better truth.
+    rng = np.random.default_rng([1000, 19])
+    R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+    T = make_T(R, [0.0, 0.0, rng.uniform(2.0, 10.0)])
+    cloud = scan(cubesat_db.target, T, rng)
+    res = cubesat_db.localize(cloud.points, np.random.default_rng([1000, 19, 1]),
+                              sigma=cloud.sigma, directions=cloud.directions)
+    e_m, e_deg = pose_error(res.T_sensor_target, T)
+    assert e_m < 0.05 and e_deg < 2.0, (e_m, e_deg)
 
 
 def test_bad_clouds_fail_softly_and_bad_arguments_raise(cubesat_db: PAHDatabase) -> None:

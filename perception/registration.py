@@ -826,6 +826,7 @@ def icp(
     method: Method | None = None,
     config: ICPConfig | None = None,
     directions: npt.ArrayLike | None = None,
+    match_along_rays: bool | None = None,
 ) -> RegistrationResult:
     """Align a scan to the target model by ICP, from an initial pose.
 
@@ -849,10 +850,13 @@ def icp(
         method: ``"point_to_plane"`` (Gauss-Newton on SE(3)) or ``"point_to_point"`` (Kabsch);
             default ``config.method``.
         config: tuning; defaults of :class:`~perception.config.ICPConfig` when None.
+        match_along_rays: choose each point's face along its measured ray (needs
+            ``directions``); None: ``config.match_along_rays``.
         directions: (N, 3) unit ray directions [sensor frame] along which each point's range
             noise acts. Default: ``points / |points|`` (rays from the sensor origin). Given
-            explicitly, they are taken as the measured rays and also choose each point's model
-            face (the one its ray crosses, :meth:`FaceGrid.nearest`). They set the
+            explicitly, and with ``match_along_rays``, they are taken as the measured rays and
+            also choose each point's model face (the one its ray crosses,
+            :meth:`FaceGrid.nearest`). They set the
             point-to-plane residual variance ``sigma_i^2 ((n_i . d_i)^2 + f^2) + sigma_model^2``
             used both to weight the solve and in the covariance, with
             ``f = config.noise_floor_fraction`` and ``sigma_model = config.model_noise_fraction *``
@@ -912,7 +916,9 @@ def icp(
     # Faces are chosen by where each point's ray crosses them (FaceGrid.nearest) only when the
     # caller gave the measured rays: a direction derived from a point that was moved after the
     # measurement (de-skewed, merged) is not its ray.
-    along_rays = directions is not None
+    along_rays = directions is not None and (
+        cfg.match_along_rays if match_along_rays is None else bool(match_along_rays)
+    )
     R = T[:3, :3].copy()
     t = T[:3, 3].copy()
     step_sigma2 = np.inf

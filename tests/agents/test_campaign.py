@@ -40,7 +40,9 @@ TINY = {
     "runs": 4,
     "seed": 5,
     "max_steps": 120,
-    "config": {"env__initial__range_dispersion_m": 0.0},
+    # Position noise at the centre of mass, so that max_pos_err_m (a centre-of-mass error) is
+    # bounded by the position sigmas alone.
+    "config": {"env__initial__range_dispersion_m": 0.0, "env__truth_noise_reference": "center_of_mass"},
     "dispersions": {
         "env__initial__range_m": {"uniform": [4.0, 6.0]},
         "env__truth_noise_position_m": [0.005, 0.02],

@@ -92,7 +92,8 @@ def test_icp_recovers_random_perturbations(name, range_m, sigma, max_deg, max_m,
     for _ in range(8):
         T = random_view(range_m, rng)
         P, D = raycast_scan(target.mesh, T, 1500, sigma, rng)
-        res = icp(P, model, perturb(T, max_deg, max_m, rng), sigma=sigma, directions=D)
+        res = icp(P, model, perturb(T, max_deg, max_m, rng), sigma=sigma, directions=D,
+                  match_along_rays=True)
         assert np.all(np.isfinite(res.T_sensor_target))
         errors.append(pose_error(res.T_sensor_target, T))
     e = np.array(errors)
@@ -212,7 +213,8 @@ def test_ray_matching_is_unbiased_with_large_range_noise():
     errs, covs = [], []
     for _ in range(30):
         P, D = raycast_scan(target.mesh, T, 1000, sigma, rng)
-        res = icp(P, model, perturb(T, 0.3, 0.01, rng), sigma=sigma, directions=D)
+        res = icp(P, model, perturb(T, 0.3, 0.01, rng), sigma=sigma, directions=D,
+                  match_along_rays=True)
         Te = res.T_sensor_target
         dphi = Rotation.from_matrix(T[:3, :3] @ Te[:3, :3].T).as_rotvec()
         errs.append(np.r_[T[:3, 3] - Te[:3, 3], dphi])

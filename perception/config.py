@@ -258,6 +258,11 @@ class ICPConfig(StrictModel):
     max_correspondence_m: PositiveFloat = Field(0.5, description="initial gating distance")
     min_correspondence_m: PositiveFloat = Field(0.02, description="floor of the adaptive gate")
     trim_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.1
+    gate_median_factor: NonNegFloat = Field(
+        6.0, description="each iteration, drop matches farther than this many times the median "
+        "match distance (never below the gate floor; 0: off): stray returns in front of or behind "
+        "the surface (1 % of a frame) are rejected however close the pose already is"
+    )
     robust_kernel: Literal["none", "huber", "tukey", "cauchy"] = "huber"
     translation_tol_m: PositiveFloat = 1e-5
     rotation_tol_rad: PositiveFloat = 1e-6

@@ -906,6 +906,11 @@ def icp(
     gate_floor = max(cfg.min_correspondence_m, 4.0 * float(np.median(sig)), 1.5 * mc.spacing)
     gate = max(cfg.max_correspondence_m, gate_floor)
     trim = float(cfg.trim_fraction)
+    gate_k = float(cfg.gate_median_factor)
+    # With exact face distances the model spacing is no error source: the median gate may go
+    # down to the noise (strays a few cm off a face are then still rejected).
+    median_floor = (max(cfg.min_correspondence_m, 4.0 * float(np.median(sig)))
+                    if mc.grid is not None else gate_floor)
     kernel_k = float(cfg.kernel_scale)
     back_cos = float(cfg.back_facing_cos)
     # The coarse phase hands over once its steps are a fraction of the gate floor.
@@ -936,6 +941,15 @@ def icp(
             mc, q, gate, n_candidates if fine else 1, d_all, back_cos, meth == "point_to_point",
             along_rays,
         )
+        if gate_k > 0.0 and m.sel.size > min_pts:
+            # Adaptive gate on the median match distance: once the pose is close, a stray
+            # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
+            # keeps it while fewer than trim_fraction of the points are strays).
+            thr = max(median_floor, gate_k * float(np.median(m.dist)))
+            if thr < gate:
+                far = m.dist > thr
+                if far.any() and m.sel.size - int(far.sum()) >= min_pts:
+                    m = m.keep(~far)
         if trim > 0.0 and m.sel.size > min_pts:
             kth = int((1.0 - trim) * (m.sel.size - 1))
             thr = float(np.partition(m.dist, kth)[kth])

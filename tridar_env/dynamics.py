@@ -708,6 +708,36 @@ def spin_with_nutation(
     return q0, omega_body
 
 
+def rigid_body_rates(
+    qw: float, qx: float, qy: float, qz: float, p: float, q: float, r: float,
+    inertia_rows: list[list[float]], inertia_inv_rows: list[list[float]], torque: list[float],
+) -> tuple[float, float, float, float, float, float, float]:
+    """Time derivative of ``(quaternion, body rate)`` of a rigid body under a body torque.
+
+    Quaternion kinematics ``dq = q (x) (0, w) / 2`` and Euler's equations
+    ``dw = I^-1 (torque - w x (I w))``, in plain floats: integrators call this thousands of times
+    on a 7-vector, where numpy's per-call overhead (np.cross above all) would be most of the cost.
+    """
+    (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = inertia_rows
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = inertia_inv_rows
+    t0, t1, t2 = torque
+    h0 = i00 * p + i01 * q + i02 * r
+    h1 = i10 * p + i11 * q + i12 * r
+    h2 = i20 * p + i21 * q + i22 * r
+    e0 = t0 - (q * h2 - r * h1)
+    e1 = t1 - (r * h0 - p * h2)
+    e2 = t2 - (p * h1 - q * h0)
+    return (
+        -0.5 * (qx * p + qy * q + qz * r),
+        0.5 * (qw * p + qy * r - qz * q),
+        0.5 * (qw * q + qz * p - qx * r),
+        0.5 * (qw * r + qx * q - qy * p),
+        j00 * e0 + j01 * e1 + j02 * e2,
+        j10 * e0 + j11 * e1 + j12 * e2,
+        j20 * e0 + j21 * e1 + j22 * e2,
+    )
+
+
 class RigidBodyAttitude:
     """Torque-free rigid body: Euler's equations + quaternion kinematics.
 
@@ -734,29 +764,9 @@ class RigidBodyAttitude:
         self._torque = np.zeros(3)
 
     def _rhs(self, _t: float, y: FloatArray) -> FloatArray:
-        # Plain floats: the integrator calls this thousands of times on a 7-vector, where
-        # numpy's per-call overhead (np.cross above all) would be most of the cost.
-        w0, x0, y0, z0, p, q, r = y.tolist()
-        (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = self._inertia_rows
-        (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = self._inertia_inv_rows
-        t0, t1, t2 = self._torque.tolist()
-        h0 = i00 * p + i01 * q + i02 * r
-        h1 = i10 * p + i11 * q + i12 * r
-        h2 = i20 * p + i21 * q + i22 * r
-        e0 = t0 - (q * h2 - r * h1)
-        e1 = t1 - (r * h0 - p * h2)
-        e2 = t2 - (p * h1 - q * h0)
-        return np.array(
-            [
-                -0.5 * (x0 * p + y0 * q + z0 * r),
-                0.5 * (w0 * p + y0 * r - z0 * q),
-                0.5 * (w0 * q + z0 * p - x0 * r),
-                0.5 * (w0 * r + x0 * q - y0 * p),
-                j00 * e0 + j01 * e1 + j02 * e2,
-                j10 * e0 + j11 * e1 + j12 * e2,
-                j20 * e0 + j21 * e1 + j22 * e2,
-            ]
-        )
+        return np.array(rigid_body_rates(
+            *y.tolist(), self._inertia_rows, self._inertia_inv_rows, self._torque.tolist()
+        ))
 
     def _check(
         self, q_wxyz: npt.ArrayLike, omega_body: npt.ArrayLike

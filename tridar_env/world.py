@@ -33,6 +33,7 @@ from tridar_env.dynamics import (
     NonlinearRelativePropagator,
     TargetAttitudeModel,
     mean_motion,
+    rigid_body_rates,
     spin_with_nutation,
 )
 
@@ -119,29 +120,12 @@ def rk4_attitude(
         ``(q, w)`` after ``dt``: (4,) unit quaternion with ``w >= 0`` and (3,) rate [rad/s].
     """
     inv = np.linalg.inv(inertia) if inertia_inv is None else inertia_inv
-    (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = np.asarray(inertia, dtype=np.float64).tolist()
-    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = np.asarray(inv, dtype=np.float64).tolist()
-    t0, t1, t2 = np.asarray(torque, dtype=np.float64).reshape(3).tolist()
+    rows = np.asarray(inertia, dtype=np.float64).tolist()
+    inv_rows = np.asarray(inv, dtype=np.float64).tolist()
+    tq = np.asarray(torque, dtype=np.float64).reshape(3).tolist()
 
-    def f(
-        qw: float, qx: float, qy: float, qz: float, p: float, r1: float, r2: float
-    ) -> tuple[float, float, float, float, float, float, float]:
-        # dw = I^-1 (torque - w x (I w))
-        h0 = i00 * p + i01 * r1 + i02 * r2
-        h1 = i10 * p + i11 * r1 + i12 * r2
-        h2 = i20 * p + i21 * r1 + i22 * r2
-        e0 = t0 - (r1 * h2 - r2 * h1)
-        e1 = t1 - (r2 * h0 - p * h2)
-        e2 = t2 - (p * h1 - r1 * h0)
-        return (
-            -0.5 * (qx * p + qy * r1 + qz * r2),
-            0.5 * (qw * p + qy * r2 - qz * r1),
-            0.5 * (qw * r1 + qz * p - qx * r2),
-            0.5 * (qw * r2 + qx * r1 - qy * p),
-            j00 * e0 + j01 * e1 + j02 * e2,
-            j10 * e0 + j11 * e1 + j12 * e2,
-            j20 * e0 + j21 * e1 + j22 * e2,
-        )
+    def f(*y: float) -> tuple[float, float, float, float, float, float, float]:
+        return rigid_body_rates(*y, rows, inv_rows, tq)
 
     y0, y1, y2, y3 = np.asarray(q, dtype=np.float64).reshape(4).tolist()
     y4, y5, y6 = np.asarray(w, dtype=np.float64).reshape(3).tolist()

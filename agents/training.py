@@ -45,14 +45,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from perception.config import ConfigError, MissionConfig, config_path, load_config, save_config
 
 __all__ = [
+    "Demonstrations",
     "NormalizeConfig",
     "PretrainConfig",
     "SB3Policy",
     "TrainResult",
     "TrainingConfig",
+    "collect_demonstrations",
     "evaluate",
     "load_policy",
     "load_training",
+    "pretrain_policy",
     "train",
     "validate_training",
 ]

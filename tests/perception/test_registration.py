@@ -168,21 +168,27 @@ def test_outliers_from_removed_solar_array_are_rejected():
     assert ep[:, 0].max() > 10 * e[:, 0].max()
 
 
+def _scatter(target, model, T, sigma, trials, rng, start, **icp_kw):
+    """ICP on ``trials`` noisy scans of ``T`` from ``start()``: errors (trials, 6) as
+    (translation, rotation vector) and the returned covariances."""
+    errs, covs = [], []
+    for _ in range(trials):
+        P, D = raycast_scan(target.mesh, T, 1000, sigma, rng)
+        res = icp(P, model, start(), sigma=sigma, directions=D, **icp_kw)
+        Te = res.T_sensor_target
+        dphi = Rotation.from_matrix(T[:3, :3] @ Te[:3, :3].T).as_rotvec()
+        errs.append(np.r_[T[:3, 3] - Te[:3, 3], dphi])
+        covs.append(res.covariance)
+    return np.array(errs), covs
+
+
 def test_covariance_matches_empirical_scatter():
     target = load_target("cubesat")
     model = prepare_model(target)
     rng = np.random.default_rng(21)
     T = make_T(Rotation.from_euler("xyz", [0.4, -0.7, 0.3]).as_matrix(), [0.1, -0.05, 6.0])
     sigma = 0.01
-    errs, covs = [], []
-    for _ in range(80):
-        P, D = raycast_scan(target.mesh, T, 1000, sigma, rng)
-        res = icp(P, model, T, sigma=sigma, directions=D)
-        Te = res.T_sensor_target
-        dphi = Rotation.from_matrix(T[:3, :3] @ Te[:3, :3].T).as_rotvec()
-        errs.append(np.r_[T[:3, 3] - Te[:3, 3], dphi])
-        covs.append(res.covariance)
-    E = np.array(errs)
+    E, covs = _scatter(target, model, T, sigma, 80, rng, lambda: T)
     C = np.mean(covs, axis=0)
     emp_pos = np.sqrt(np.mean(np.sum(E[:, :3] ** 2, axis=1)))
     emp_rot = np.sqrt(np.mean(np.sum(E[:, 3:] ** 2, axis=1)))
@@ -210,16 +216,8 @@ def test_ray_matching_is_unbiased_with_large_range_noise():
     rng = np.random.default_rng(5)
     T = random_view(10.0, rng)
     sigma = 0.025
-    errs, covs = [], []
-    for _ in range(30):
-        P, D = raycast_scan(target.mesh, T, 1000, sigma, rng)
-        res = icp(P, model, perturb(T, 0.3, 0.01, rng), sigma=sigma, directions=D,
-                  match_along_rays=True)
-        Te = res.T_sensor_target
-        dphi = Rotation.from_matrix(T[:3, :3] @ Te[:3, :3].T).as_rotvec()
-        errs.append(np.r_[T[:3, 3] - Te[:3, 3], dphi])
-        covs.append(res.covariance)
-    E = np.array(errs)
+    E, covs = _scatter(target, model, T, sigma, 30, rng, lambda: perturb(T, 0.3, 0.01, rng),
+                       match_along_rays=True)
     C = np.mean(covs, axis=0)
     sem_rot = np.sqrt(np.trace(C[3:, 3:]) / len(E))
     # Mean error (bias) within ~3 standard errors of zero.

@@ -352,6 +352,16 @@ class PipelineConfig(StrictModel):
         0.05, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
     )
     process_noise_angacc: PositiveFloat = Field(0.005, description="[rad/s^2/sqrt(Hz)]")
+    ego_motion: bool = Field(
+        False,
+        description="fuse the host's gyro and accelerometer (perception.filter.EgoMotion) into the "
+        "relative-motion filter, so that the chaser's own rotation and thrust are not process noise",
+    )
+    target_rotation: Literal["constant_rate", "torque_free"] = Field(
+        "constant_rate",
+        description="filter model of the target's inertial rate: constant, or Euler's torque-free "
+        "equations with the target model's inertia (a tumbling target)",
+    )
     measurement_floor_m: NonNegFloat = Field(
         0.01, description="added to the registration's position sigma (model error, TOF bias)"
     )

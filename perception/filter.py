@@ -8,6 +8,25 @@ constant angular velocity, driven by white acceleration and angular-acceleration
 densities from the mission config); it predicts the pose for the next scan (area-of-interest
 steering, ICP initial guess) and over a scan (de-skewing each point at its own time).
 
+**Ego-motion aiding.** A chaser that rotates and thrusts moves the sensor frame, and without
+knowing it the filter must treat the chaser's own manoeuvres as process noise: a synchronised
+chaser turning at 5 deg/s around a tumbling target makes the relative rate change by the chaser's
+angular acceleration, which the filter can only follow with a large angular-acceleration density
+(and so a noisy rate). The host knows its motion (gyro, accelerometer, commanded thrust):
+:meth:`PoseFilter.set_ego` takes the sensor's inertial angular velocity ``omega_s`` and inertial
+acceleration ``a_s`` (sensor coordinates). The filter then models the target's motion
+*inertially*: internally it carries the inertial relative velocity ``u`` and the target's inertial
+angular velocity ``W``, both in sensor coordinates, and over a step ``dt``
+
+    p' = E (p + u dt - a_s dt^2 / 2),  u' = E (u - a_s dt),  R' = E exp(W dt) R,  W' = E W,
+
+with ``E = exp(-omega_s dt)`` the sensor frame's own turn. The relative quantities it publishes
+are ``v = u - omega_s x p`` (the time derivative of ``p`` in sensor coordinates) and
+``w = W - omega_s``. With no ego data (``omega_s = a_s = 0``) this is the plain constant-velocity
+model. With the target's inertia (``inertia=``), ``W`` follows Euler's torque-free equations in
+the target body frame instead of staying constant: a nutating tumble is then predicted, not
+tracked as noise.
+
 Attitude errors are left perturbations in the sensor frame, ``R_true = exp(dtheta^) R_est``; the
 error state is ``[dp, dv, dtheta, domega]`` (12). The measurement is the 6-vector
 ``[p_meas - p, log(R_meas R^T)]``, whose noise is the registration covariance as
@@ -32,7 +51,7 @@ from perception.geometry import make_T, skew
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["PoseFilter", "RangeFilter", "UpdateResult"]
+__all__ = ["EgoMotion", "PoseFilter", "RangeFilter", "UpdateResult"]
 
 #: 99.9% quantile of chi-square with 6 degrees of freedom: innovations beyond it are rejected.
 CHI2_6_999 = 22.457744484825323
@@ -41,6 +60,33 @@ CHI2_6_999 = 22.457744484825323
 def _wn_block(dt: float, q: float) -> FloatArray:
     """Discrete white-noise-acceleration covariance (2x2) per axis for spectral density ``q``."""
     return q * np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
+
+
+@dataclass(frozen=True)
+class EgoMotion:
+    """The host's own motion, as its gyro and accelerometer give it (sensor coordinates).
+
+    Attributes:
+        omega: (3,) inertial angular velocity of the sensor frame [rad/s], sensor coordinates.
+        accel: (3,) inertial acceleration of the sensor origin [m/s^2], sensor coordinates
+            (thrust / mass plus the lever-arm terms of the chaser's rotation; gravity excluded,
+            since the target falls with it).
+    """
+
+    omega: FloatArray
+    accel: FloatArray
+
+    def __post_init__(self) -> None:
+        for name in ("omega", "accel"):
+            val = np.asarray(getattr(self, name), dtype=np.float64)
+            if val.shape != (3,) or not np.all(np.isfinite(val)):
+                raise ValueError(f"EgoMotion.{name}={getattr(self, name)!r}; expected a finite (3,) vector")
+            object.__setattr__(self, name, val)
+
+
+def _euler_rhs(omega: FloatArray, inertia: FloatArray, inertia_inv: FloatArray) -> FloatArray:
+    """Torque-free Euler equations, body frame: ``I dw/dt = (I w) x w``."""
+    return inertia_inv @ np.cross(inertia @ omega, omega)
 
 
 @dataclass(frozen=True)
@@ -60,6 +106,9 @@ class PoseFilter:
         init_velocity_sigma: 1-sigma of the velocity at initialisation [m/s].
         init_rate_sigma: 1-sigma of the angular velocity at initialisation [rad/s].
         gate_chi2: Mahalanobis gate of the 6-dof innovation (rejected beyond it).
+        inertia: (3, 3) inertia tensor of the target [kg m^2, target frame]: predict the
+            target's inertial rate with Euler's torque-free equations (a tumbling target);
+            None: constant inertial rate.
         ref_point: (3,) point of the target body [m, target frame] whose motion the filter
             models (default: the target origin). Tracking the docking port instead of a centre of
             mass 12 m away keeps attitude noise from leaking, through the lever arm, into the
@@ -76,6 +125,7 @@ class PoseFilter:
         init_rate_sigma: float = float(np.deg2rad(6.0)),
         gate_chi2: float = CHI2_6_999,
         ref_point: npt.ArrayLike | None = None,
+        inertia: npt.ArrayLike | None = None,
     ) -> None:
         for name, val in (("accel_psd", accel_psd), ("angacc_psd", angacc_psd),
                           ("init_velocity_sigma", init_velocity_sigma),
@@ -90,13 +140,47 @@ class PoseFilter:
         self.r = np.zeros(3) if ref_point is None else np.asarray(ref_point, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(self.r)):
             raise ValueError(f"ref_point={self.r.tolist()}; expected a finite (3,) point [m]")
+        self.inertia: FloatArray | None = None
+        self._inertia_inv: FloatArray | None = None
+        if inertia is not None:
+            J = np.asarray(inertia, dtype=np.float64)
+            if J.shape != (3, 3) or not np.all(np.isfinite(J)) or not np.allclose(J, J.T) \
+                    or np.min(np.linalg.eigvalsh(0.5 * (J + J.T))) <= 0:
+                raise ValueError(f"inertia={J.tolist()}; expected a symmetric positive-definite (3, 3)")
+            self.inertia = 0.5 * (J + J.T)
+            self._inertia_inv = np.linalg.inv(self.inertia)
         self.initialized = False
         self.t = 0.0
         self.p = np.zeros(3)
-        self.v = np.zeros(3)
+        self.u = np.zeros(3)  # inertial velocity of the reference point, sensor coordinates
         self.R = np.eye(3)
-        self.w = np.zeros(3)
+        self.W = np.zeros(3)  # inertial angular velocity of the target, sensor coordinates
         self.P = np.eye(12)
+        self.ego_omega = np.zeros(3)
+        self.ego_accel = np.zeros(3)
+
+    # ------------------------------------------------------------------ relative rates
+    @property
+    def v(self) -> FloatArray:
+        """Velocity of the reference point: time derivative of ``p`` in sensor coordinates."""
+        return self.u - np.cross(self.ego_omega, self.p)
+
+    @property
+    def w(self) -> FloatArray:
+        """Angular velocity of the target relative to the sensor, sensor coordinates [rad/s]."""
+        return self.W - self.ego_omega
+
+    def set_ego(self, ego: EgoMotion | None) -> None:
+        """The sensor's inertial rate and acceleration from now on (None: a still sensor).
+
+        The filter keeps its inertial state; only the split into "target" and "sensor" motion of
+        what it publishes changes. Call :meth:`predict` to the measurement time of the old values
+        first when the host's motion changed in between.
+        """
+        if ego is None:
+            self.ego_omega, self.ego_accel = np.zeros(3), np.zeros(3)
+        else:
+            self.ego_omega, self.ego_accel = ego.omega.copy(), ego.accel.copy()
 
     # ------------------------------------------------------------------ reference point
     def _pose_jacobian(self, R: FloatArray) -> FloatArray:
@@ -117,8 +201,10 @@ class PoseFilter:
         J[0:3, 6:9] = A  # dp = dp_ref + [a]x dtheta
         J[3:6, 9:12] = A  # dv = dv_ref + [a]x domega + [w]x [a]x dtheta
         J[3:6, 6:9] = skew(self.w) @ A
-        return (self.p - a, self.v - np.cross(self.w, a), self.R.copy(), self.w.copy(),
-                J @ self.P @ J.T)
+        # internal (p, u, dtheta, W) -> (p, v, dtheta, w) of the reference point: v = u - ws x p
+        J[3:6, 0:3] = -skew(self.ego_omega)
+        w, v = self.w, self.v
+        return (self.p - a, v - np.cross(w, a), self.R.copy(), w.copy(), J @ self.P @ J.T)
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self) -> None:
@@ -135,9 +221,10 @@ class PoseFilter:
         self.t = float(t)
         self.p = T_ref[:3, 3].copy()
         self.R = T_ref[:3, :3].copy()
-        self.w = np.zeros(3) if omega is None else np.asarray(omega, dtype=np.float64).copy()
+        w = np.zeros(3) if omega is None else np.asarray(omega, dtype=np.float64)
+        self.W = w + self.ego_omega
         v0 = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
-        self.v = v0 + np.cross(self.w, self.R @ self.r)
+        self.u = v0 + np.cross(w, self.R @ self.r) + np.cross(self.ego_omega, self.p)
         P = np.zeros((12, 12))
         P[0:3, 0:3] = cov_pose[:3, :3]
         P[6:9, 6:9] = cov_pose[3:, 3:]
@@ -149,10 +236,60 @@ class PoseFilter:
         self.initialized = True
 
     # ------------------------------------------------------------------ prediction
-    def _F_Q(self, dt: float) -> tuple[FloatArray, FloatArray]:
-        F = np.eye(12)
-        F[0:3, 3:6] = np.eye(3) * dt
-        F[6:9, 9:12] = np.eye(3) * dt
+    def _propagate(self, dt: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Mean state after ``dt`` and the pieces of the Jacobian: ``(p, u, R, W, E, G)``.
+
+        ``E`` turns sensor coordinates at the start into those at the end; ``G`` (3, 3) is the
+        Jacobian of ``W'`` with respect to ``W`` (``E`` for a constant rate).
+        """
+        E = Rotation.from_rotvec(-self.ego_omega * dt).as_matrix()
+        a = -self.ego_accel  # the target falls freely: its acceleration relative to the sensor
+        # The target's origin (its centre of mass) moves straight; the reference point turns
+        # about it with the body.
+        lever = self.R @ self.r
+        pc = self.p - lever
+        uc = self.u - np.cross(self.W, lever)
+        pc = E @ (pc + uc * dt + 0.5 * a * dt * dt)
+        uc = E @ (uc + a * dt)
+        if self.inertia is None or self._inertia_inv is None:
+            R = E @ Rotation.from_rotvec(self.W * dt).as_matrix() @ self.R
+            W = E @ self.W
+            lever = R @ self.r
+            return pc + lever, uc + np.cross(W, lever), R, W, E, E
+        # Torque-free tumble: RK4 on Euler's equations in the body frame, the attitude following
+        # the body rate (midpoint rotation per sub-step).
+        J, Ji = self.inertia, self._inertia_inv
+        om = self.R.T @ self.W
+        n = max(1, int(np.ceil(abs(dt) / 0.05)))
+        h = dt / n
+        dR = np.eye(3)
+        for _ in range(n):
+            k1 = _euler_rhs(om, J, Ji)
+            k2 = _euler_rhs(om + 0.5 * h * k1, J, Ji)
+            k3 = _euler_rhs(om + 0.5 * h * k2, J, Ji)
+            k4 = _euler_rhs(om + h * k3, J, Ji)
+            om_next = om + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            dR = dR @ Rotation.from_rotvec(0.5 * (om + om_next) * h).as_matrix()
+            om = om_next
+        R = E @ self.R @ dR
+        W = R @ om
+        # d(dW') / d(dW): the linearised Euler equations over the step, in sensor coordinates.
+        om0 = self.R.T @ self.W
+        A = Ji @ (skew(J @ om0) - skew(om0) @ J)
+        G = E @ self.R @ (np.eye(3) + A * dt) @ self.R.T
+        lever = R @ self.r
+        return pc + lever, uc + np.cross(W, lever), R, W, E, G
+
+    def _F_Q(self, dt: float, E: FloatArray | None = None, G: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        E = np.eye(3) if E is None else E
+        G = E if G is None else G
+        F = np.zeros((12, 12))
+        F[0:3, 0:3] = E
+        F[0:3, 3:6] = E * dt
+        F[3:6, 3:6] = E
+        F[6:9, 6:9] = E @ Rotation.from_rotvec(self.W * dt).as_matrix()
+        F[6:9, 9:12] = E * dt
+        F[9:12, 9:12] = G
         Q = np.zeros((12, 12))
         qa, qw = _wn_block(dt, self.qa), _wn_block(dt, self.qw)
         for i in range(3):
@@ -163,9 +300,8 @@ class PoseFilter:
 
     def pose_at(self, t: float) -> FloatArray:
         """Predicted ``T_sensor_target`` (of the target origin) at time ``t`` (no state change)."""
-        dt = float(t) - self.t
-        R = Rotation.from_rotvec(self.w * dt).as_matrix() @ self.R
-        return make_T(R, self.p + self.v * dt - R @ self.r)
+        p, _, R, _, _, _ = self._propagate(float(t) - self.t)
+        return make_T(R, p - R @ self.r)
 
     def motion(self) -> Callable[[float], FloatArray]:
         """``t -> T_sensor_target`` from the current state (for de-skewing a scan)."""
@@ -179,9 +315,9 @@ class PoseFilter:
             raise ValueError(f"predict to t={t} before the filter time {self.t}")
         if dt == 0:
             return
-        self.R = Rotation.from_rotvec(self.w * dt).as_matrix() @ self.R
-        self.p = self.p + self.v * dt
-        F, Q = self._F_Q(dt)
+        p, u, R, W, E, G = self._propagate(dt)
+        F, Q = self._F_Q(dt, E, G)
+        self.p, self.u, self.R, self.W = p, u, R, W
         self.P = F @ self.P @ F.T + Q
         self.t = float(t)
 
@@ -212,9 +348,9 @@ class PoseFilter:
         K = np.linalg.solve(S, H @ self.P).T
         dx = K @ z
         self.p = self.p + dx[0:3]
-        self.v = self.v + dx[3:6]
+        self.u = self.u + dx[3:6]
         self.R = Rotation.from_rotvec(dx[6:9]).as_matrix() @ self.R
-        self.w = self.w + dx[9:12]
+        self.W = self.W + dx[9:12]
         I_KH = np.eye(12) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ cov_pose @ K.T  # Joseph form: stays SPD
         self.P = 0.5 * (self.P + self.P.T)

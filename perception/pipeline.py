@@ -25,7 +25,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.filter import PoseFilter, RangeFilter
+from perception.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import check_rigid, make_T, matrix_to_quat
 from perception.modes import FrameVerdict, ModeLogic
 from perception.pointcloud import PointCloud
@@ -159,8 +159,10 @@ class TriDAR:
         """Start-up: bearing mode, empty filters, fresh counters; ``rng`` drives the sensor and PAH."""
         self.rng = rng
         self.external_seed = None
+        inertia = self.target.inertia if self.pc.target_rotation == "torque_free" else None
         self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2,
-                                 ref_point=self.target.T_target_port[:3, 3])
+                                 ref_point=self.target.T_target_port[:3, 3], inertia=inertia)
+        self._ego: EgoMotion | None = None
         self.range_filter = RangeFilter(self.pc.process_noise_accel**2)
         self.logic.reset(0.0)
         self.sensor.frame_counter = 0
@@ -197,15 +199,25 @@ class TriDAR:
         return self._pah
 
     # ------------------------------------------------------------------ the frame
-    def step(self, scene: TruthScene | PointCloud, t: float) -> StateVector:
+    def step(self, scene: TruthScene | PointCloud, t: float, ego: EgoMotion | None = None) -> StateVector:
         """Run one frame at time ``t`` [s] and publish the newest available state.
 
         Args:
             scene: the truth scene to scan (simulation), or an already acquired cloud.
             t: current time [s].
+            ego: the host's gyro and accelerometer at ``t`` (sensor coordinates), used from
+                now on when ``pipeline.ego_motion`` is set (ignored otherwise).
         """
         if not np.isfinite(t):
             raise ValueError(f"t={t!r}; expected a finite time [s]")
+        if ego is not None and self.pc.ego_motion:
+            if not isinstance(ego, EgoMotion):
+                raise ValueError(f"ego={type(ego).__name__}; expected an EgoMotion")
+            # The old rates held until now; the new ones from now on.
+            if self.filter.initialized and self.filter.t < t:
+                self.filter.predict(t)
+            self.filter.set_ego(ego)
+            self._ego = ego
         if self.logic.restart_due(t) and self.logic.mode != Mode.BEARING:
             self._restart(t)
         if t >= self.busy_until - 1e-12:
@@ -484,6 +496,8 @@ class TriDAR:
         pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
         if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
             f = copy.deepcopy(out.filt)
+            if self._ego is not None:
+                f.set_ego(self._ego)  # the host's latest rates carry the state to now
             if t > f.t:
                 f.predict(t)
             fp, fv, fR, fw, fP = f.target_state()

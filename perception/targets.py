@@ -445,6 +445,14 @@ def _cygnss() -> TargetModel:
     return _assemble(
         "cygnss", parts, (0, 0, 0.27), (0, 0, 1),
         "seed-003 CYGNSS-like microsatellite: bus, two wings, boom on +y, port on +z",
+        # The wings' +z faces are dark cells that return little at TOF ranges: close in, the
+        # docking area is the bus face around the port (its edges fix the roll about the port
+        # axis), not a box that spends most of the scan on the wings.
+        regions={
+            "whole": ((0.0, 0.12, 0.035), (1.78, 0.56, 0.24)),
+            "docking_area": ((0.0, 0.0, 0.05), (0.46, 0.46, 0.25)),
+            "port": ((0.0, 0.0, 0.235), (0.2, 0.2, 0.1)),
+        },
     )
 
 

@@ -168,6 +168,7 @@ class TriDARObserver:
         from perception.pipeline import TriDAR  # the product's perception, built on first use
 
         self.pipeline = TriDAR(cfg, target)
+        self.ego = cfg.pipeline.ego_motion
 
     @property
     def last_cloud(self) -> object | None:
@@ -178,7 +179,7 @@ class TriDARObserver:
 
     def observe(self, world: World, rng: np.random.Generator) -> StateVector:
         del rng  # the pipeline owns the generator handed to reset()
-        return self.pipeline.step(world.scene(), world.t)
+        return self.pipeline.step(world.scene(), world.t, ego=world.sensor_ego() if self.ego else None)
 
 
 def make_observer(cfg: MissionConfig, target: TargetModel) -> Observer:

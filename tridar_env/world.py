@@ -23,6 +23,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
+from perception.filter import EgoMotion
 from perception.geometry import fast_cross, fast_invert, fast_quat_to_matrix, make_T, rotation_z
 from perception.sensors.motion import RelativeMotion
 from perception.state import TruthScene
@@ -235,6 +236,8 @@ class World:
         ini = cfg.env.initial
         self.t = 0.0
         self.delta_v = 0.0
+        self._thrust_accel_lvlh = np.zeros(3)
+        self._alpha_body = np.zeros(3)
         self._const = {}
         self._invalidate()
         self.mass = ChaserMass(ch.dry_mass_kg, ch.propellant_kg, ch.isp_s, ch.max_thrust_n)
@@ -358,7 +361,9 @@ class World:
         """
         thrust_lvlh = self.R_lvlh_chaser @ thrust_n if self._thrust_in_body else thrust_n
         m_before = self.mass.mass_kg
+        w_before = self.chaser_angular_velocity_body
         accel, applied = self.mass.apply(thrust_lvlh, self.dt)
+        self._thrust_accel_lvlh = np.asarray(accel, dtype=np.float64)
         self.delta_v += math.sqrt(float(applied @ applied)) / m_before * self.dt
         self.state = self._trans.step(self.state, accel)
         self.target_attitude.step(self.dt)
@@ -370,7 +375,22 @@ class World:
             )
         self.t += self.dt
         self._invalidate()
+        self._alpha_body = (self.chaser_angular_velocity_body - w_before) / self.dt
         return applied
+
+    def sensor_ego(self) -> EgoMotion:
+        """What the chaser's IMU tells the sensor about its own motion (sensor coordinates).
+
+        The gyro's inertial rate, and the sensor origin's inertial acceleration: the thrust
+        acceleration of the last step plus the lever-arm terms of the chaser's rotation
+        (``alpha x r + w x (w x r)``, with ``alpha`` the mean angular acceleration of the last
+        step). Exact values: IMU noise is not modelled.
+        """
+        R_cs, r = self.T_chaser_sensor[:3, :3], self.T_chaser_sensor[:3, 3]
+        w = self.chaser_angular_velocity_body
+        a_body = self.R_lvlh_chaser.T @ self._thrust_accel_lvlh
+        a_body = a_body + np.cross(self._alpha_body, r) + np.cross(w, np.cross(w, r))
+        return EgoMotion(R_cs.T @ w, R_cs.T @ a_body)
 
     # ------------------------------------------------------------------ observation of truth
     def sensor_truth(self) -> SensorTruth:

@@ -77,3 +77,32 @@ def test_propellant_and_delta_v_bookkeeping() -> None:
     assert used == pytest.approx(10.0 * 50 * w.dt / (isp * g0), rel=1e-12)
     # Rocket equation to first order: delta-v ~ isp g0 ln(m0 / m1).
     assert w.delta_v == pytest.approx(isp * g0 * np.log(m0 / w.mass.mass_kg), rel=1e-3)
+
+
+@pytest.mark.parametrize("mission", ["final_approach", "tumbling_target"])
+def test_sensor_ego_motion_is_the_hosts_inertial_motion(mission: str) -> None:
+    """The IMU data handed to the pipeline: the gyro's rate plus the relative rate is the target's
+    inertial rate; the accelerometer's reading is what makes the target accelerate in the sensor
+    frame (a free-falling target, up to the gravity gradient)."""
+    w = _world(mission, env__frame_period_s=0.002)
+    thrust = np.array([0.3, -0.2, 0.8])
+    tq = np.array([0.02, -0.01, 0.015]) if w.controlled_attitude else None
+    for _ in range(5):
+        w.step(thrust, tq)
+    s0, e0 = w.sensor_truth(), w.sensor_ego()
+    W_target = w.R_lvlh_target @ w.target_attitude.omega_body if mission == "tumbling_target" \
+        else np.array([0.0, 0.0, 0.0])
+    if mission == "tumbling_target":
+        R_sl = w.T_lvlh_sensor[:3, :3].T
+        np.testing.assert_allclose(s0.angular_velocity + e0.omega, R_sl @ W_target, atol=1e-12)
+    w.step(thrust, tq)
+    s1, e1 = w.sensor_truth(), w.sensor_ego()
+    dt = w.dt
+    p, v = 0.5 * (s0.T_sensor_target[:3, 3] + s1.T_sensor_target[:3, 3]), 0.5 * (s0.velocity + s1.velocity)
+    om = 0.5 * (e0.omega + e1.omega)
+    a_fd = (s1.velocity - s0.velocity) / dt
+    alpha = (e1.omega - e0.omega) / dt
+    # p'' = -a_s - 2 w x p' - alpha x p - w x (w x p) in the rotating sensor frame
+    a_s = -(a_fd + 2 * np.cross(om, v) + np.cross(alpha, p) + np.cross(om, np.cross(om, p)))
+    assert np.linalg.norm(e1.accel) > 1e-3  # the thrust is there to be seen
+    np.testing.assert_allclose(a_s, 0.5 * (e0.accel + e1.accel), atol=3e-4)

@@ -352,6 +352,18 @@ class PipelineConfig(StrictModel):
         0.05, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
     )
     process_noise_angacc: PositiveFloat = Field(0.005, description="[rad/s^2/sqrt(Hz)]")
+    symmetry_check_period_s: PositiveFloat | None = Field(
+        None,
+        description="ambiguity monitor: every this many seconds of tracking, ICP from each "
+        "near-symmetric turn of the tracked pose and switch to one that explains the points "
+        "clearly better (None: off)",
+    )
+    symmetry_switch_checks: Annotated[int, Field(ge=1)] = Field(
+        3, description="checks in a row that must prefer the same turn before switching to it"
+    )
+    symmetry_margin: PositiveFloat = Field(
+        0.01, description="score lead (likelihood minus twice the free-space violations, per point)"
+    )
     ego_motion: bool = Field(
         False,
         description="fuse the host's gyro and accelerometer (perception.filter.EgoMotion) into the "

@@ -1086,6 +1086,16 @@ class PAHDatabase:
             fs = behind.mean(axis=1)
         return inl.mean(axis=1), like, fs
 
+    def near_symmetries(self) -> FloatArray:
+        """(S, 4, 4) rigid motions ``G`` of the target frame that nearly map the model onto itself.
+
+        ``T @ G`` is a pose that a partial scan may fit about as well as ``T`` (the half turn of a
+        two-winged bus about its port axis). Needs the database's target; cached on it.
+        """
+        if self.target is None:
+            raise ValueError("near_symmetries() needs the target: build() or load(path, target)")
+        return self._near_symmetries()
+
     def _near_symmetries(self) -> FloatArray:
         """(S, 4, 4) rigid motions ``G`` of the target frame that nearly map the model onto itself.
 

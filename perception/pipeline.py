@@ -31,6 +31,7 @@ from perception.modes import FrameVerdict, ModeLogic
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
 from perception.scan_patterns import make_pattern, steer_to_region
+from perception.sensors.raycast import cast_rays
 from perception.sensors.tridar import TriDARSensor
 from perception.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
 from perception.targets import RegionOfInterest, TargetModel
@@ -100,6 +101,8 @@ class PipelineStats:
     restarts: int = 0
     rejected_candidates: int = 0
     filter_reinits: int = 0
+    symmetry_checks: int = 0
+    symmetry_switches: int = 0
     reacquired_from_track: int = 0
     registration_time_s: list[float] = field(default_factory=list)
 
@@ -177,6 +180,9 @@ class TriDAR:
         self._last_pose_t = -np.inf
         self._n_updates = 0
         self._gate_rejects = 0
+        self._sym_checked_t = -np.inf
+        self._sym_votes = 0
+        self._sym_candidate = -1
         self._lost_track: PoseFilter | None = None
         self.stats = PipelineStats()
 
@@ -458,6 +464,10 @@ class TriDAR:
                 else:
                     verdict = self.logic.judge(True, res.fitness, res.inlier_rmse, expected,
                                                res.T_sensor_target, None, filter_accepted=False)
+        if verdict.good and self.pc.symmetry_check_period_s is not None and self._n_updates > 0 \
+                and t_ref - self._sym_checked_t >= self.pc.symmetry_check_period_s - 1e-9:
+            self._sym_checked_t = t_ref
+            self._check_symmetry(pts, cloud, res, t_ref, rng_m)
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
@@ -465,6 +475,68 @@ class TriDAR:
         bfix = self._bearing_fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         self._outputs.append(out)
+
+    def _pose_score(self, pts: FloatArray, sigma: FloatArray, T: FloatArray) -> float:
+        """How well a pose explains the points: mean Gaussian likelihood of the point-to-plane
+        residuals (inliers within 3 sigma plus the model's sample spacing) minus twice the
+        fraction of points measured behind the model's first surface along their ray (the
+        surface would have returned the pulse before: impossible under that pose)."""
+        R, t = T[:3, :3], T[:3, 3]
+        X = (pts - t) @ R
+        m = self.model
+        gate = 3.0 * sigma + m.spacing
+        d, j = m.kdtree.query(X, k=1, distance_upper_bound=float(gate.max()))
+        inl = d <= gate
+        jj = np.where(inl, j, 0)
+        r = np.einsum("ni,ni->n", X - m.points[jj], m.normals[jj])
+        like = float(np.mean(np.where(inl, np.exp(-0.5 * (r / sigma) ** 2), 0.0)))
+        ranges = np.linalg.norm(pts, axis=1)
+        dirs = (pts / ranges[:, None]) @ R
+        origin = -(t @ R)
+        _, r_model, _ = cast_rays(self.target, origin, dirs)
+        with np.errstate(invalid="ignore"):
+            behind = ranges > r_model + 3.0 * sigma
+        return like - 2.0 * float(np.mean(behind))
+
+    def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
+                        t_ref: float, rng_m: float) -> None:
+        """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
+
+        ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model; a converged
+        alternative whose :meth:`_pose_score` beats the tracked pose's by ``symmetry_margin``
+        gets a vote, and ``symmetry_switch_checks`` votes in a row for the same turn move the
+        track there (the filter restarts on it, keeping its rates). A track that locked onto the
+        flipped twin of a nearly symmetric target at 60 m, where the features that tell them
+        apart are a few noisy points, is put right once they are resolved.
+        """
+        self.stats.symmetry_checks += 1
+        G = self.pah.near_symmetries()
+        cfg = self.logic.icp_config_for_range(rng_m)
+        cur = self._pose_score(pts, cloud.sigma, res.T_sensor_target)
+        best_i, best_score, best_res = -1, cur + self.pc.symmetry_margin, None
+        for i, Gi in enumerate(G):
+            alt = icp(pts, self.model, res.T_sensor_target @ Gi, sigma=cloud.sigma,
+                      directions=cloud.directions, config=cfg)
+            if not alt.converged:
+                continue
+            score = self._pose_score(pts, cloud.sigma, alt.T_sensor_target)
+            if score > best_score:
+                best_i, best_score, best_res = i, score, alt
+        if best_res is None:
+            self._sym_votes, self._sym_candidate = 0, -1
+            return
+        self._sym_votes = self._sym_votes + 1 if best_i == self._sym_candidate else 1
+        self._sym_candidate = best_i
+        if self._sym_votes < self.pc.symmetry_switch_checks:
+            return
+        f = self.filter
+        v_origin = f.target_state()[1]
+        f.initialize(t_ref, best_res.T_sensor_target, self._measurement_cov(best_res),
+                     velocity=v_origin, omega=f.w)
+        self.last_result = best_res
+        self.stats.symmetry_switches += 1
+        self._sym_votes, self._sym_candidate = 0, -1
+        self._n_updates = max(self._n_updates, 3)
 
     def _after_loss(self, lost: bool, t: float) -> None:
         if lost:

@@ -477,10 +477,11 @@ def _iss_port() -> TargetModel:
             _Part(_box((0.25, 0.25, 0.25), (0.75 * np.cos(a), 5.525, 0.75 * np.sin(a))), 30.0, ALUMINIUM)
             for a in np.radians([90.0, 210.0, 330.0])
         ],
-        # (0.6 m off the axis: clear of a chaser hull sphere of 0.5 m centred 0.6 m behind the
-        # docking plane at contact.)
-        _Part(_box((0.12, 0.30, 0.12), (0.55, 5.55, 0.25)), 5.0, WHITE_PAINT),
-        _Part(_box((0.26, 0.02, 0.26), (0.55, 5.71, 0.25)), 2.0, WHITE_PAINT),
+        # (0.75 m off the axis: a chaser hull sphere of 0.5 m centred 0.6 m behind the docking
+        # plane clears it by 8 cm at contact with the envelope's 0.10 m lateral offset; at 0.55 m
+        # it struck the standoff from 5 cm of offset, a "collision" inside the envelope.)
+        _Part(_box((0.12, 0.30, 0.12), (0.75, 5.55, 0.25)), 5.0, WHITE_PAINT),
+        _Part(_box((0.26, 0.02, 0.26), (0.75, 5.71, 0.25)), 2.0, WHITE_PAINT),
     ]
     return _assemble(
         "iss_port", parts, (0, 5.4, 0), (0, 1, 0),

@@ -106,3 +106,24 @@ def test_sensor_ego_motion_is_the_hosts_inertial_motion(mission: str) -> None:
     a_s = -(a_fd + 2 * np.cross(om, v) + np.cross(alpha, p) + np.cross(om, np.cross(om, p)))
     assert np.linalg.norm(e1.accel) > 1e-3  # the thrust is there to be seen
     np.testing.assert_allclose(a_s, 0.5 * (e0.accel + e1.accel), atol=3e-4)
+
+
+@pytest.mark.parametrize("mission", ["final_approach", "tumbling_target"])
+def test_hull_clears_the_target_anywhere_inside_the_capture_envelope(mission: str) -> None:
+    """A contact inside the envelope's lateral offset must not be a hull strike: the target's
+    features near the port leave the chaser's hull sphere room (the ISS-like standoff once did
+    not, and docked approaches 6 cm off the axis ended as collisions)."""
+    from tridar_env.world import R_PORT_DOCK
+
+    w = _world(mission)
+    T_lp = w.T_lvlh_target @ w.target.T_target_port
+    R_lc = T_lp[:3, :3] @ R_PORT_DOCK
+    d_max = w.cfg.env.envelope.lateral_offset_max_m
+    worst = np.inf
+    for d in (0.0, 0.5 * d_max, d_max):
+        for th in np.linspace(0.0, 2.0 * np.pi, 48, endpoint=False):
+            r_dock = T_lp[:3, 3] + d * (np.cos(th) * T_lp[:3, 0] + np.sin(th) * T_lp[:3, 1])
+            w.state = np.r_[r_dock - R_lc @ w.T_chaser_dock[:3, 3], np.zeros(3)]
+            w._invalidate()
+            worst = min(worst, w.hull_clearance())
+    assert 0.02 < worst < 1.0  # measured 9.5 cm (iss_port petals), 10 cm (cygnss)

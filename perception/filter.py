@@ -47,7 +47,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from perception.geometry import make_T, skew
+from perception.geometry import fast_cross, fast_rotvec_to_matrix, make_T, skew
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -86,7 +86,7 @@ class EgoMotion:
 
 def _euler_rhs(omega: FloatArray, inertia: FloatArray, inertia_inv: FloatArray) -> FloatArray:
     """Torque-free Euler equations, body frame: ``I dw/dt = (I w) x w``."""
-    return inertia_inv @ np.cross(inertia @ omega, omega)
+    return inertia_inv @ fast_cross(inertia @ omega, omega)
 
 
 @dataclass(frozen=True)
@@ -163,7 +163,7 @@ class PoseFilter:
     @property
     def v(self) -> FloatArray:
         """Velocity of the reference point: time derivative of ``p`` in sensor coordinates."""
-        return self.u - np.cross(self.ego_omega, self.p)
+        return self.u - fast_cross(self.ego_omega, self.p)
 
     @property
     def w(self) -> FloatArray:
@@ -204,7 +204,7 @@ class PoseFilter:
         # internal (p, u, dtheta, W) -> (p, v, dtheta, w) of the reference point: v = u - ws x p
         J[3:6, 0:3] = -skew(self.ego_omega)
         w, v = self.w, self.v
-        return (self.p - a, v - np.cross(w, a), self.R.copy(), w.copy(), J @ self.P @ J.T)
+        return (self.p - a, v - fast_cross(w, a), self.R.copy(), w.copy(), J @ self.P @ J.T)
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self) -> None:
@@ -242,20 +242,20 @@ class PoseFilter:
         ``E`` turns sensor coordinates at the start into those at the end; ``G`` (3, 3) is the
         Jacobian of ``W'`` with respect to ``W`` (``E`` for a constant rate).
         """
-        E = Rotation.from_rotvec(-self.ego_omega * dt).as_matrix()
+        E = fast_rotvec_to_matrix(-self.ego_omega * dt)
         a = -self.ego_accel  # the target falls freely: its acceleration relative to the sensor
         # The target's origin (its centre of mass) moves straight; the reference point turns
         # about it with the body.
         lever = self.R @ self.r
         pc = self.p - lever
-        uc = self.u - np.cross(self.W, lever)
+        uc = self.u - fast_cross(self.W, lever)
         pc = E @ (pc + uc * dt + 0.5 * a * dt * dt)
         uc = E @ (uc + a * dt)
         if self.inertia is None or self._inertia_inv is None:
-            R = E @ Rotation.from_rotvec(self.W * dt).as_matrix() @ self.R
+            R = E @ fast_rotvec_to_matrix(self.W * dt) @ self.R
             W = E @ self.W
             lever = R @ self.r
-            return pc + lever, uc + np.cross(W, lever), R, W, E, E
+            return pc + lever, uc + fast_cross(W, lever), R, W, E, E
         # Torque-free tumble: RK4 on Euler's equations in the body frame, the attitude following
         # the body rate (midpoint rotation per sub-step).
         J, Ji = self.inertia, self._inertia_inv
@@ -269,7 +269,7 @@ class PoseFilter:
             k3 = _euler_rhs(om + 0.5 * h * k2, J, Ji)
             k4 = _euler_rhs(om + h * k3, J, Ji)
             om_next = om + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-            dR = dR @ Rotation.from_rotvec(0.5 * (om + om_next) * h).as_matrix()
+            dR = dR @ fast_rotvec_to_matrix(0.5 * (om + om_next) * h)
             om = om_next
         R = E @ self.R @ dR
         W = R @ om
@@ -278,7 +278,7 @@ class PoseFilter:
         A = Ji @ (skew(J @ om0) - skew(om0) @ J)
         G = E @ self.R @ (np.eye(3) + A * dt) @ self.R.T
         lever = R @ self.r
-        return pc + lever, uc + np.cross(W, lever), R, W, E, G
+        return pc + lever, uc + fast_cross(W, lever), R, W, E, G
 
     def _F_Q(self, dt: float, E: FloatArray | None = None, G: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
         E = np.eye(3) if E is None else E
@@ -287,16 +287,25 @@ class PoseFilter:
         F[0:3, 0:3] = E
         F[0:3, 3:6] = E * dt
         F[3:6, 3:6] = E
-        F[6:9, 6:9] = E @ Rotation.from_rotvec(self.W * dt).as_matrix()
+        F[6:9, 6:9] = E @ fast_rotvec_to_matrix(self.W * dt)
         F[6:9, 9:12] = E * dt
         F[9:12, 9:12] = G
-        Q = np.zeros((12, 12))
-        qa, qw = _wn_block(dt, self.qa), _wn_block(dt, self.qw)
-        for i in range(3):
-            for (a, b), q in (((0, 3), qa), ((6, 9), qw)):
-                idx = [a + i, b + i]
-                Q[np.ix_(idx, idx)] = q
-        return F, Q
+        return F, self._Q(dt)
+
+    def _Q(self, dt: float) -> FloatArray:
+        """Process noise over ``dt`` (isotropic per block, so the frame turn leaves it alone)."""
+        cache = self.__dict__.setdefault("_q_cache", {})
+        Q = cache.get(dt)
+        if Q is None:
+            Q = np.zeros((12, 12))
+            qa, qw = _wn_block(dt, self.qa), _wn_block(dt, self.qw)
+            for i in range(3):
+                for (a, b), q in (((0, 3), qa), ((6, 9), qw)):
+                    idx = [a + i, b + i]
+                    Q[np.ix_(idx, idx)] = q
+            if len(cache) < 64:
+                cache[dt] = Q
+        return Q
 
     def pose_at(self, t: float) -> FloatArray:
         """Predicted ``T_sensor_target`` (of the target origin) at time ``t`` (no state change)."""
@@ -349,7 +358,7 @@ class PoseFilter:
         dx = K @ z
         self.p = self.p + dx[0:3]
         self.u = self.u + dx[3:6]
-        self.R = Rotation.from_rotvec(dx[6:9]).as_matrix() @ self.R
+        self.R = fast_rotvec_to_matrix(dx[6:9]) @ self.R
         self.W = self.W + dx[9:12]
         I_KH = np.eye(12) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ cov_pose @ K.T  # Joseph form: stays SPD

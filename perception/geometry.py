@@ -18,6 +18,7 @@ FloatArray = npt.NDArray[np.float64]
 __all__ = [
     "make_T",
     "compose",
+    "fast_rotvec_to_matrix",
     "invert",
     "transform_points",
     "transform_vectors",
@@ -292,6 +293,25 @@ def fast_cross(a: FloatArray, b: FloatArray) -> FloatArray:
     a0, a1, a2 = a.tolist()
     b0, b1, b2 = b.tolist()
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def fast_rotvec_to_matrix(v: FloatArray) -> FloatArray:
+    """(3, 3) rotation matrix of one rotation vector [rad] (Rodrigues; series near zero), what
+    ``Rotation.from_rotvec(v).as_matrix()`` returns."""
+    x, y, z = v.tolist()
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-8:  # sin(t)/t and (1 - cos t)/t^2 by their series: exact to double precision
+        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+    else:
+        th = math.sqrt(th2)
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    return np.array([
+        [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+        [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+        [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+    ])
 
 
 def fast_quat_to_matrix(q_wxyz: FloatArray) -> FloatArray:

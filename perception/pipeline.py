@@ -512,10 +512,17 @@ class TriDAR:
         self.stats.symmetry_checks += 1
         G = self.pah.near_symmetries()
         cfg = self.logic.icp_config_for_range(rng_m)
+        # A turn that is not a better basin need not converge: cap the work it gets.
+        cfg = cfg.model_copy(update={"max_iterations": min(cfg.max_iterations, 10)})
         cur = self._pose_score(pts, cloud.sigma, res.T_sensor_target)
         best_i, best_score, best_res = -1, cur + self.pc.symmetry_margin, None
         for i, Gi in enumerate(G):
-            alt = icp(pts, self.model, res.T_sensor_target @ Gi, sigma=cloud.sigma,
+            T_alt = res.T_sensor_target @ Gi
+            # Turns that show the sensor another side of the target explain little even before
+            # ICP: only the near-fits are polished and scored.
+            if self._pose_score(pts, cloud.sigma, T_alt) < 0.5 * cur:
+                continue
+            alt = icp(pts, self.model, T_alt, sigma=cloud.sigma,
                       directions=cloud.directions, config=cfg)
             if not alt.converged:
                 continue

@@ -334,3 +334,14 @@ def test_same_seed_bitwise_identical_truth_rollouts_every_id(env_id: str) -> Non
         assert ra == rb
         np.testing.assert_array_equal(pa, pb)
         np.testing.assert_array_equal(Ta, Tb)
+
+
+def test_fast_rotvec_to_matrix_matches_scipy() -> None:
+    from perception.geometry import fast_rotvec_to_matrix
+
+    rng = np.random.default_rng(7)
+    for scale in (1e-9, 1e-5, 1e-3, 0.3, 3.0):
+        for v in rng.standard_normal((50, 3)) * scale:
+            np.testing.assert_allclose(fast_rotvec_to_matrix(v), Rotation.from_rotvec(v).as_matrix(),
+                                       atol=2e-15, rtol=0)
+    np.testing.assert_array_equal(fast_rotvec_to_matrix(np.zeros(3)), np.eye(3))

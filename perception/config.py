@@ -362,7 +362,7 @@ class PipelineConfig(StrictModel):
         3, description="checks in a row that must prefer the same turn before switching to it"
     )
     symmetry_margin: PositiveFloat = Field(
-        0.01, description="score lead (likelihood minus twice the free-space violations, per point)"
+        0.01, description="lead in PAH score (likelihood minus twice the unexplained fraction) to switch"
     )
     ego_motion: bool = Field(
         False,

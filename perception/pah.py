@@ -1086,6 +1086,37 @@ class PAHDatabase:
             fs = behind.mean(axis=1)
         return inl.mean(axis=1), like, fs
 
+    def verify_poses(
+        self, points: FloatArray, sigma: float | FloatArray, Ts: FloatArray,
+        directions: FloatArray | None = None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Fitness and score of K candidate poses on a scan, as PAH ranks its hypotheses.
+
+        The score is the mean Gaussian likelihood of the point-to-plane residuals minus
+        ``2 x`` (outlier fraction + free-space violation fraction): a point the pose leaves
+        unexplained, or one measured behind the model's first surface on its ray, is evidence
+        against it.
+
+        Args:
+            points: (n, 3) finite scan points [m], sensor frame.
+            sigma: range noise, scalar or (n,) [m].
+            Ts: (K, 4, 4) poses ``T_sensor_target``.
+            directions: (n, 3) ray directions (default: the lines of sight).
+
+        Returns:
+            ``(fitness, score)``, each (K,).
+        """
+        if self.target is None:
+            raise ValueError("verify_poses() needs the target: build() or load(path, target)")
+        P = np.asarray(points, dtype=np.float64)
+        sig = per_point_sigma(sigma, P.shape[0])
+        rng_norm = np.linalg.norm(P, axis=1)
+        rays = P / rng_norm[:, None] if directions is None else np.asarray(directions, dtype=np.float64)
+        mc = prepare_model(self.target, _DENSE_POINTS)
+        scan = _Scan(P, sig, rng_norm, rays, 3.0 * sig + mc.spacing, 3.0 * sig + _FREE_SPACE_MARGIN_M)
+        fit, like, fs = self._verify(scan, np.asarray(Ts, dtype=np.float64).reshape(-1, 4, 4), mc)
+        return fit, like - _UNEXPLAINED_PENALTY * ((1.0 - fit) + fs)
+
     def near_symmetries(self) -> FloatArray:
         """(S, 4, 4) rigid motions ``G`` of the target frame that nearly map the model onto itself.
 

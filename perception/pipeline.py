@@ -31,7 +31,6 @@ from perception.modes import FrameVerdict, ModeLogic
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
 from perception.scan_patterns import make_pattern, steer_to_region
-from perception.sensors.raycast import cast_rays
 from perception.sensors.tridar import TriDARSensor
 from perception.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
 from perception.targets import RegionOfInterest, TargetModel
@@ -476,59 +475,40 @@ class TriDAR:
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         self._outputs.append(out)
 
-    def _pose_score(self, pts: FloatArray, sigma: FloatArray, T: FloatArray) -> float:
-        """How well a pose explains the points: mean Gaussian likelihood of the point-to-plane
-        residuals (inliers within 3 sigma plus the model's sample spacing) minus twice the
-        fraction of points measured behind the model's first surface along their ray (the
-        surface would have returned the pulse before: impossible under that pose)."""
-        R, t = T[:3, :3], T[:3, 3]
-        X = (pts - t) @ R
-        m = self.model
-        gate = 3.0 * sigma + m.spacing
-        d, j = m.kdtree.query(X, k=1, distance_upper_bound=float(gate.max()))
-        inl = d <= gate
-        jj = np.where(inl, j, 0)
-        r = np.einsum("ni,ni->n", X - m.points[jj], m.normals[jj])
-        like = float(np.mean(np.where(inl, np.exp(-0.5 * (r / sigma) ** 2), 0.0)))
-        ranges = np.linalg.norm(pts, axis=1)
-        dirs = (pts / ranges[:, None]) @ R
-        origin = -(t @ R)
-        _, r_model, _ = cast_rays(self.target, origin, dirs)
-        with np.errstate(invalid="ignore"):
-            behind = ranges > r_model + 3.0 * sigma
-        return like - 2.0 * float(np.mean(behind))
-
     def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
                         t_ref: float, rng_m: float) -> None:
         """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
 
         ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model; a converged
-        alternative whose :meth:`_pose_score` beats the tracked pose's by ``symmetry_margin``
+        alternative whose PAH score (:meth:`~perception.pah.PAHDatabase.verify_poses`) beats the
+        tracked pose's by ``symmetry_margin``
         gets a vote, and ``symmetry_switch_checks`` votes in a row for the same turn move the
         track there (the filter restarts on it, keeping its rates). A track that locked onto the
         flipped twin of a nearly symmetric target at 60 m, where the features that tell them
         apart are a few noisy points, is put right once they are resolved.
         """
         self.stats.symmetry_checks += 1
-        G = self.pah.near_symmetries()
+        pah = self.pah
+        G = pah.near_symmetries()
+        T = res.T_sensor_target
+        sigma, dirs = cloud.sigma, cloud.directions
+        fit, score = pah.verify_poses(pts, sigma, np.concatenate([T[None], T @ G]), dirs)
+        # Turns that show the sensor another side of the target explain little even before ICP:
+        # only the near-fits are polished (with capped work: a turn that is not a better basin
+        # need not converge) and scored again.
         cfg = self.logic.icp_config_for_range(rng_m)
-        # A turn that is not a better basin need not converge: cap the work it gets.
         cfg = cfg.model_copy(update={"max_iterations": min(cfg.max_iterations, 10)})
-        cur = self._pose_score(pts, cloud.sigma, res.T_sensor_target)
-        best_i, best_score, best_res = -1, cur + self.pc.symmetry_margin, None
-        for i, Gi in enumerate(G):
-            T_alt = res.T_sensor_target @ Gi
-            # Turns that show the sensor another side of the target explain little even before
-            # ICP: only the near-fits are polished and scored.
-            if self._pose_score(pts, cloud.sigma, T_alt) < 0.5 * cur:
-                continue
-            alt = icp(pts, self.model, T_alt, sigma=cloud.sigma,
-                      directions=cloud.directions, config=cfg)
-            if not alt.converged:
-                continue
-            score = self._pose_score(pts, cloud.sigma, alt.T_sensor_target)
-            if score > best_score:
-                best_i, best_score, best_res = i, score, alt
+        alts: list[tuple[int, RegistrationResult]] = []
+        for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):
+            alt = icp(pts, self.model, T @ G[i], sigma=sigma, directions=dirs, config=cfg)
+            if alt.converged:
+                alts.append((int(i), alt))
+        best_i, best_res = -1, None
+        if alts:
+            _, s_alt = pah.verify_poses(pts, sigma, np.stack([a.T_sensor_target for _, a in alts]), dirs)
+            k = int(np.argmax(s_alt))
+            if s_alt[k] > score[0] + self.pc.symmetry_margin:
+                best_i, best_res = alts[k]
         if best_res is None:
             self._sym_votes, self._sym_candidate = 0, -1
             return

@@ -295,8 +295,12 @@ def test_free_space_check_rejects_half_turn_flip_of_cygnss(cygnss_db: PAHDatabas
     assert h_true.score > h_flip.score + 0.05
     assert h_true.clean(db.config.accept_fitness, len(P))
     assert not h_flip.clean(db.config.accept_fitness, len(P))
+    # The public scoring (the pipeline's ambiguity monitor uses it) is the hypotheses' score.
+    fit_pub, score_pub = db.verify_poses(P, sig, np.stack([T_true, T_flip]))
+    np.testing.assert_array_equal(fit_pub, fit)
+    np.testing.assert_allclose(score_pub, [h_true.score, h_flip.score], rtol=0, atol=1e-12)
     # The flip is among the near-symmetries the localization verifies, and it finds the truth.
-    G = db._near_symmetries()
+    G = db.near_symmetries()
     assert min(pose_error(T_true @ g, T_flip)[1] for g in G) < 5.0
     res = db.localize(P, np.random.default_rng(0), sigma=cloud.sigma)
     e_m, e_deg = pose_error(res.T_sensor_target, T)

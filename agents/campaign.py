@@ -690,12 +690,16 @@ def summarize(df: Any) -> dict[str, Any]:
         "errors": int(errored.sum()) if errored is not None else 0,
         "delta_v_median_m_s": stat("delta_v_m_s", med),
         "delta_v_p90_m_s": stat("delta_v_m_s", p90),
+        "delta_v_mean_m_s": stat("delta_v_m_s", np.mean),
+        "delta_v_p95_m_s": stat("delta_v_m_s", lambda a: np.percentile(a, 95)),
         "contact_closing_speed_median_m_s": stat("contact_closing_speed", med, contact),
         "contact_lateral_offset_p90_m": stat("contact_lateral_offset", p90, contact),
         "max_pos_err_median_m": stat("max_pos_err_m", med),
         "rms_pos_err_median_m": stat("rms_pos_err_m", med),
         "rms_att_err_median_deg": stat("rms_att_err_deg", med),
         "acquisitions_mean": stat("acquisitions", np.mean),
+        "track_losses_mean": stat("track_losses", np.mean),
+        "symmetry_switches_total": stat("symmetry_switches", np.sum),
         "sim_time_median_s": stat("sim_time_s", med),
     }
 
@@ -714,12 +718,15 @@ def format_summary(summary: dict[str, Any], title: str | None = None) -> str:
         ("causes", causes),
         ("errored runs", s["errors"]),
         ("delta-v median / p90 [m/s]", f"{s['delta_v_median_m_s']:.3g} / {s['delta_v_p90_m_s']:.3g}"),
+        ("delta-v mean / p95 [m/s]", f"{s['delta_v_mean_m_s']:.3g} / {s['delta_v_p95_m_s']:.3g}"),
         ("closing speed at contact, median [m/s]", f"{s['contact_closing_speed_median_m_s']:.3g}"),
         ("lateral offset at contact, p90 [m]", f"{s['contact_lateral_offset_p90_m']:.3g}"),
         ("max position error, median [m]", f"{s['max_pos_err_median_m']:.3g}"),
         ("RMS position error, median [m]", f"{s['rms_pos_err_median_m']:.3g}"),
         ("RMS attitude error, median [deg]", f"{s['rms_att_err_median_deg']:.3g}"),
         ("acquisitions per run, mean", f"{s['acquisitions_mean']:.3g}"),
+        ("losses of track per run, mean", f"{s['track_losses_mean']:.3g}"),
+        ("switches to a near-symmetric twin, total", f"{s['symmetry_switches_total']:.0f}"),
         ("sim time, median [s]", f"{s['sim_time_median_s']:.4g}"),
     ]
     table = format_table([{"metric": m, "value": v} for m, v in rows])

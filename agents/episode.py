@@ -38,6 +38,8 @@ class EpisodeResult:
             the steps with a valid pose.
         time_in_mode_s: seconds spent in each TriDAR mode.
         acquisitions: number of search -> tracking transitions.
+        track_losses: the TriDAR's declared losses of track (0 without the pipeline).
+        symmetry_switches: tracks the ambiguity monitor moved to a near-symmetric twin.
         log: per-step columns (:data:`LOG_COLUMNS`) when ``keep_log``.
     """
 
@@ -55,6 +57,8 @@ class EpisodeResult:
     rms_att_err_deg: float
     time_in_mode_s: dict[str, float]
     acquisitions: int
+    track_losses: int = 0
+    symmetry_switches: int = 0
     log: dict[str, list[Any]] = field(default_factory=dict, repr=False)
 
     @property
@@ -149,12 +153,16 @@ def run_episode(
             break
     mp, rp = _nan_stats(pos_err)
     ma, ra = _nan_stats(att_err)
+    stats = getattr(getattr(getattr(env.unwrapped, "observer", None), "pipeline", None), "stats", None)
     return EpisodeResult(
         seed=int(seed), outcome=outcome, steps=steps, sim_time_s=float(info["t"]),
         delta_v_m_s=float(info["delta_v"]), propellant_used_kg=prop0 - float(info["propellant_kg"]),
         episode_return=total, contact=asdict(info["contact"]),
         max_pos_err_m=mp, rms_pos_err_m=rp, max_att_err_deg=ma, rms_att_err_deg=ra,
-        time_in_mode_s=modes, acquisitions=acquisitions, log=log if keep_log else {},
+        time_in_mode_s=modes, acquisitions=acquisitions,
+        track_losses=int(getattr(stats, "losses", 0)),
+        symmetry_switches=int(getattr(stats, "symmetry_switches", 0)),
+        log=log if keep_log else {},
     )
 
 

@@ -183,6 +183,7 @@ def test_campaign_on_local_cluster_rows_resume_and_no_duplicates(tmp_path):
         assert 4.0 <= r["disp__env__initial__range_m"] <= 6.0
         assert r["disp__env__truth_noise_position_m"] in (0.005, 0.02)
         assert r["outcome"] in ("docked", "failed") and r["docked"] == (r["cause"] == "docked")
+        assert r["track_losses"] == 0 and r["symmetry_switches"] == 0  # no pipeline on truth+noise
         assert r["steps"] <= cfg.max_steps and r["delta_v_m_s"] > 0
         assert 0 < r["rms_pos_err_m"] <= r["max_pos_err_m"] < 0.2
         assert r["time_tracking_s"] == pytest.approx(r["sim_time_s"])  # truth: always tracking
@@ -240,6 +241,8 @@ def test_summary_success_rate_and_wilson_interval():
     assert (s["wilson95_low"], s["wilson95_high"]) == wilson_interval(2, 5)
     assert s["causes"] == {"docked": 2, "collision": 1, "timeout": 1} and s["errors"] == 1
     assert s["delta_v_median_m_s"] == 2.5
+    assert s["delta_v_mean_m_s"] == 2.5 and s["delta_v_p95_m_s"] == pytest.approx(3.85)
+    assert np.isnan(s["track_losses_mean"])  # rows from before the column existed
 
 
 # ---------------------------------------------------------------------------------------------

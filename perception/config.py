@@ -426,6 +426,16 @@ class ChaserConfig(StrictModel):
     sensor_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
     dock_position_m: Vec3 = (0.0, 0.0, 0.6)
     hull_radius_m: PositiveFloat = 0.5
+    gyro_noise_deg_s: NonNegFloat = Field(
+        0.0, description="1-sigma white noise of each gyro reading [deg/s] (the observation's "
+        "gyro and the pipeline's ego-motion see the same reading)"
+    )
+    gyro_bias_deg_s: NonNegFloat = Field(
+        0.0, description="1-sigma of the gyro's constant bias per axis, drawn at reset [deg/s]"
+    )
+    accel_noise_m_s2: NonNegFloat = Field(
+        0.0, description="1-sigma white noise of each accelerometer reading [m/s^2]"
+    )
 
 
 class DynamicsConfig(StrictModel):

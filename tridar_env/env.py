@@ -257,7 +257,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         fuel0 = self.cfg.dynamics.chaser.propellant_kg
         obs[S["fuel_fraction"]] = w.mass.propellant_kg / fuel0 if fuel0 > 0 else 0.0
         obs[S["time_fraction"]] = self._steps / self.cfg.env.max_episode_steps
-        obs[S["chaser_rate_body"]] = w.chaser_angular_velocity_body
+        obs[S["chaser_rate_body"]] = w.gyro()
         # np.clip in place, without its dispatch overhead (NaN propagates the same way).
         np.maximum(obs, self._obs_low64, out=obs)
         np.minimum(obs, self._obs_high64, out=obs)

@@ -212,6 +212,12 @@ class World:
         self._q_i_chaser = np.array([1.0, 0.0, 0.0, 0.0])
         self._w_chaser = np.zeros(3)
         self.delta_v = 0.0
+        # IMU: the last step's thrust acceleration and angular acceleration, the gyro bias and
+        # the generator of the readings' noise (the env's, from reset).
+        self._thrust_accel_lvlh = np.zeros(3)
+        self._alpha_body = np.zeros(3)
+        self._gyro_bias = np.zeros(3)
+        self._imu_rng = np.random.default_rng(0)
         # Frames derived from the state, computed once per state; reset to the episode's constant
         # frames (``_const``) whenever the state changes.
         self._memo: dict[str, Any] = {}
@@ -238,6 +244,7 @@ class World:
         self.delta_v = 0.0
         self._thrust_accel_lvlh = np.zeros(3)
         self._alpha_body = np.zeros(3)
+        self._imu_rng = rng
         self._const = {}
         self._invalidate()
         self.mass = ChaserMass(ch.dry_mass_kg, ch.propellant_kg, ch.isp_s, ch.max_thrust_n)
@@ -270,6 +277,8 @@ class World:
             R_i_c = err * Rotation.from_matrix(R_lc)  # inertial frame == LVLH at t = 0
             self._q_i_chaser = np.roll(R_i_c.as_quat(), 1)
             self._w_chaser = R_i_c.inv().apply([0.0, 0.0, self.n])  # co-rotating with LVLH
+        sb = math.radians(ch.gyro_bias_deg_s)
+        self._gyro_bias = rng.normal(0.0, sb, 3) if sb > 0 else np.zeros(3)
         self._invalidate()
 
     def _freeze_constant_frames(self) -> None:
@@ -378,19 +387,32 @@ class World:
         self._alpha_body = (self.chaser_angular_velocity_body - w_before) / self.dt
         return applied
 
+    def gyro(self) -> FloatArray:
+        """This step's gyro reading [rad/s], body frame: the inertial rate plus the bias and white
+        noise of ``dynamics.chaser`` (one reading per step, shared by every consumer)."""
+        def build() -> FloatArray:
+            w = self.chaser_angular_velocity_body + self._gyro_bias
+            s = math.radians(self.cfg.dynamics.chaser.gyro_noise_deg_s)
+            return w + self._imu_rng.normal(0.0, s, 3) if s > 0 else w
+
+        return self._cached("gyro", build)
+
     def sensor_ego(self) -> EgoMotion:
         """What the chaser's IMU tells the sensor about its own motion (sensor coordinates).
 
-        The gyro's inertial rate, and the sensor origin's inertial acceleration: the thrust
-        acceleration of the last step plus the lever-arm terms of the chaser's rotation
+        The gyro's reading (:meth:`gyro`), and the sensor origin's inertial acceleration: the
+        thrust acceleration of the last step plus the lever-arm terms of the chaser's rotation
         (``alpha x r + w x (w x r)``, with ``alpha`` the mean angular acceleration of the last
-        step). Exact values: IMU noise is not modelled.
+        step), plus the accelerometer's white noise.
         """
         R_cs, r = self.T_chaser_sensor[:3, :3], self.T_chaser_sensor[:3, 3]
         w = self.chaser_angular_velocity_body
         a_body = self.R_lvlh_chaser.T @ self._thrust_accel_lvlh
         a_body = a_body + np.cross(self._alpha_body, r) + np.cross(w, np.cross(w, r))
-        return EgoMotion(R_cs.T @ w, R_cs.T @ a_body)
+        sa = self.cfg.dynamics.chaser.accel_noise_m_s2
+        if sa > 0:
+            a_body = a_body + self._imu_rng.normal(0.0, sa, 3)
+        return EgoMotion(R_cs.T @ self.gyro(), R_cs.T @ a_body)
 
     # ------------------------------------------------------------------ observation of truth
     def sensor_truth(self) -> SensorTruth:

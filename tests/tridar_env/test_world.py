@@ -127,3 +127,30 @@ def test_hull_clears_the_target_anywhere_inside_the_capture_envelope(mission: st
             w._invalidate()
             worst = min(worst, w.hull_clearance())
     assert 0.02 < worst < 1.0  # measured 9.5 cm (iss_port petals), 10 cm (cygnss)
+
+
+def test_imu_noise_follows_its_configured_model() -> None:
+    """Gyro: a constant bias drawn at reset plus white noise, one reading per step for every
+    consumer; accelerometer: white noise. Zero noise leaves the readings exact."""
+    w = _world("tumbling_target", dynamics__chaser__gyro_noise_deg_s=0.02,
+               dynamics__chaser__gyro_bias_deg_s=0.05, dynamics__chaser__accel_noise_m_s2=1e-3)
+    R_cs = w.T_chaser_sensor[:3, :3]
+    bias = w._gyro_bias.copy()
+    assert np.linalg.norm(bias) > 0
+    dg, da = [], []
+    for _ in range(3000):
+        w.step(np.zeros(3), np.zeros(3))
+        g = w.gyro()
+        np.testing.assert_array_equal(g, w.gyro())  # the same reading within a step
+        e = w.sensor_ego()
+        np.testing.assert_allclose(e.omega, R_cs.T @ g, atol=1e-15)
+        dg.append(g - w.chaser_angular_velocity_body)
+        da.append(R_cs @ e.accel - np.cross(w.chaser_angular_velocity_body,
+                                             np.cross(w.chaser_angular_velocity_body, w.T_chaser_sensor[:3, 3])))
+    dg, da = np.degrees(np.array(dg)), np.array(da)
+    np.testing.assert_allclose(dg.mean(axis=0), np.degrees(bias), atol=4 * 0.02 / np.sqrt(3000))
+    np.testing.assert_allclose(dg.std(axis=0), 0.02, rtol=0.06)
+    np.testing.assert_allclose(da.std(axis=0), 1e-3, rtol=0.06)
+    quiet = _world("tumbling_target")
+    quiet.step(np.zeros(3), np.zeros(3))
+    np.testing.assert_array_equal(quiet.gyro(), quiet.chaser_angular_velocity_body)

@@ -323,10 +323,17 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         d = T_ld[:3, 3] - T_lp[:3, 3]
         return math.sqrt(float(d @ d))
 
+    def _port_contact(self, c: ContactState) -> bool:
+        """The docking interface meets the port: the dock has just reached the port plane from
+        the front (no deeper than the hull radius behind it) near the axis. A chaser far behind
+        the plane of a port that has turned away (a tumbling target) is not touching it."""
+        hull = self.cfg.dynamics.chaser.hull_radius_m
+        return -hull <= c.axial_distance <= 0.0 and c.lateral_offset <= hull
+
     def _termination(self) -> str:
         w, env = self.world, self.cfg.env
         c = w.contact()
-        if c.axial_distance <= 0.0 and c.lateral_offset <= self.cfg.dynamics.chaser.hull_radius_m:
+        if self._port_contact(c):
             e = env.envelope
             inside = (
                 e.axial_speed_min_m_s <= c.closing_speed <= e.axial_speed_max_m_s
@@ -366,9 +373,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         collision = 0.0
         if cause == "collision":
             collision = -rw.collision
-            port_contact = (c.axial_distance <= 0.0
-                            and c.lateral_offset <= self.cfg.dynamics.chaser.hull_radius_m)
-            if port_contact:
+            if self._port_contact(c):
                 collision *= min(1.0, rw.near_miss + envelope_excess(c, env.envelope))
         return {
             "reward_progress": rw.progress * progress,

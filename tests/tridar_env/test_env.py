@@ -114,6 +114,26 @@ def test_too_fast_approach_is_a_collision() -> None:
     assert info["reward_collision"] < 0
 
 
+def test_far_behind_a_port_that_turned_away_is_not_a_contact() -> None:
+    """The port plane of a tumbling target sweeps the sky: a chaser 10 m behind it, near its
+    axis, is far from the target (it once ended the episode as a "collision" at 21 m range)."""
+    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth")
+    env.reset(seed=0)
+    u = env.unwrapped
+    w = u.world
+    T_lp = w.T_lvlh_port
+    dock_offset = w.T_lvlh_dock[:3, 3] - w.state[:3]
+    w.state = np.r_[T_lp[:3, 3] - 10.0 * T_lp[:3, 2] + 0.2 * T_lp[:3, 0] - dock_offset, np.zeros(3)]
+    w._invalidate()
+    c = w.contact()
+    assert c.axial_distance < -9.0 and c.lateral_offset < 0.5 and w.hull_clearance() > 5.0
+    assert u._termination() == ""
+    # At the port plane, the same offset is a contact (outside the envelope at rest: collision).
+    w.state = np.r_[T_lp[:3, 3] - 0.05 * T_lp[:3, 2] + 0.2 * T_lp[:3, 0] - dock_offset, np.zeros(3)]
+    w._invalidate()
+    assert u._termination() == "collision"
+
+
 def _constant(env_id: str, action, seed: int = 0, **kw) -> dict:
     env = gym.make(env_id, perception="truth", **kw)
     env.reset(seed=seed)

@@ -42,12 +42,18 @@ def test_final_approach_controllers_dock_on_truth(name: str) -> None:
     assert r.sim_time_s < 250.0
 
 
-def test_sync_docks_tumbling_target_on_truth() -> None:
-    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth")
+def _sync_docks(env: gym.Env, seed: int):
+    """Fly the sync controller; it must dock inside the envelope."""
     ctrl = SyncController(env.unwrapped.cfg)
-    r = run_episode(env, ctrl, seed=3)
+    r = run_episode(env, ctrl, seed=seed)
     assert r.outcome == "docked"
     _inside_envelope(env, r.contact)
+    return r, ctrl
+
+
+def test_sync_docks_tumbling_target_on_truth() -> None:
+    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth")
+    r, ctrl = _sync_docks(env, seed=3)
     # synchronised with a 3 deg/s, 10 deg-nutation tumble: relative rate a small part of 0.15 deg/s
     assert r.contact["angular_rate_deg_s"] < 0.03
     assert r.contact["misalignment_deg"] < 0.5
@@ -245,10 +251,7 @@ NOISY_SEEDS = [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks
 
 @pytest.mark.parametrize("seed", NOISY_SEEDS)
 def test_sync_docks_tumbling_target_with_noise(seed: int) -> None:
-    env = gym.make("TriDAR/TumblingTarget-v0", perception="truth+noise")
-    r = run_episode(env, SyncController(env.unwrapped.cfg), seed=seed)
-    assert r.outcome == "docked"
-    _inside_envelope(env, r.contact)
+    _sync_docks(gym.make("TriDAR/TumblingTarget-v0", perception="truth+noise"), seed)
 
 
 @pytest.mark.parametrize("seed", NOISY_SEEDS)
@@ -265,10 +268,7 @@ def test_sync_docks_tumbling_target_on_the_full_pipeline() -> None:
     tracked by ICP on ~100-600 points a frame, the filter aided by the chaser's IMU."""
     env = gym.make("TriDAR/TumblingTarget-v0")  # perception="tridar" from the mission YAML
     assert env.unwrapped.cfg.pipeline.ego_motion
-    ctrl = SyncController(env.unwrapped.cfg)
-    r = run_episode(env, ctrl, seed=1)
-    assert r.outcome == "docked"
-    _inside_envelope(env, r.contact)
+    r, _ = _sync_docks(env, seed=1)
     # measured: 0.01 deg/s relative rate and 0.11 deg misalignment at contact
     assert r.contact["angular_rate_deg_s"] < 0.08
     assert r.contact["misalignment_deg"] < 1.5

@@ -158,6 +158,7 @@ class PoseFilter:
         self.P = np.eye(12)
         self.ego_omega = np.zeros(3)
         self.ego_accel = np.zeros(3)
+        self._q_cache: dict[float, FloatArray] = {}  # process noise by step length
 
     # ------------------------------------------------------------------ relative rates
     @property
@@ -259,7 +260,8 @@ class PoseFilter:
         # Torque-free tumble: RK4 on Euler's equations in the body frame, the attitude following
         # the body rate (midpoint rotation per sub-step).
         J, Ji = self.inertia, self._inertia_inv
-        om = self.R.T @ self.W
+        om0 = self.R.T @ self.W
+        om = om0
         n = max(1, int(np.ceil(abs(dt) / 0.05)))
         h = dt / n
         dR = np.eye(3)
@@ -274,15 +276,12 @@ class PoseFilter:
         R = E @ self.R @ dR
         W = R @ om
         # d(dW') / d(dW): the linearised Euler equations over the step, in sensor coordinates.
-        om0 = self.R.T @ self.W
         A = Ji @ (skew(J @ om0) - skew(om0) @ J)
         G = E @ self.R @ (np.eye(3) + A * dt) @ self.R.T
         lever = R @ self.r
         return pc + lever, uc + fast_cross(W, lever), R, W, E, G
 
-    def _F_Q(self, dt: float, E: FloatArray | None = None, G: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
-        E = np.eye(3) if E is None else E
-        G = E if G is None else G
+    def _F_Q(self, dt: float, E: FloatArray, G: FloatArray) -> tuple[FloatArray, FloatArray]:
         F = np.zeros((12, 12))
         F[0:3, 0:3] = E
         F[0:3, 3:6] = E * dt
@@ -294,7 +293,7 @@ class PoseFilter:
 
     def _Q(self, dt: float) -> FloatArray:
         """Process noise over ``dt`` (isotropic per block, so the frame turn leaves it alone)."""
-        cache = self.__dict__.setdefault("_q_cache", {})
+        cache = self._q_cache
         Q = cache.get(dt)
         if Q is None:
             Q = np.zeros((12, 12))

@@ -408,7 +408,7 @@ class World:
         R_cs, r = self.T_chaser_sensor[:3, :3], self.T_chaser_sensor[:3, 3]
         w = self.chaser_angular_velocity_body
         a_body = self.R_lvlh_chaser.T @ self._thrust_accel_lvlh
-        a_body = a_body + np.cross(self._alpha_body, r) + np.cross(w, np.cross(w, r))
+        a_body = a_body + fast_cross(self._alpha_body, r) + fast_cross(w, fast_cross(w, r))
         sa = self.cfg.dynamics.chaser.accel_noise_m_s2
         if sa > 0:
             a_body = a_body + self._imu_rng.normal(0.0, sa, 3)

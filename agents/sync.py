@@ -23,23 +23,33 @@ Phases (:attr:`SyncController.phase`):
     (``d/dt w_rel = alpha_port - alpha_chaser - w x w_rel``), which averages estimate noise
     without lagging the control.
     Translation: hold the dock on the *rotating* port axis at ``s`` ahead of the port, the point
-    ``h = p + s u`` with ``u = R_dock_port e_z`` (``h = 0`` there). In the rotating docking frame
-    ``p'' = -a - alpha x (p + d) - w x (w x (p + d)) - 2 w x p_dot + (port's own acceleration)``:
-    the centripetal, Coriolis and Euler terms of the chaser's rotation (``w`` from the gyro,
-    ``alpha`` from the torque just commanded) are compensated, the port's acceleration about the
-    target's centre of mass (unknown: ``|w|^2`` times the port's lever arm) is left to the PD.
+    ``h = p + s u`` with ``u = R_dock_port e_z`` (``h = 0`` there). The hold point is fixed in the
+    *target's* frame, so the error is differentiated there: ``h' = p_dot - w_rel x p + s_dot u``,
+    which does not see the chaser's own attitude transients (differentiating in the body frame
+    turned every rate mismatch into a translation error and, on a fast minimum-axis spin,
+    saturated the thrust until the chaser fell off its circle). The dock at ``rho`` from the
+    target's centre of mass (``rho = r_port - p``, the port's lever from the target's design data)
+    needs the acceleration ``alpha_t x rho + w_t x (w_t x rho) - 2 w_t x h'`` of a point fixed in
+    the rotating target (``w_t = w + w_rel``, ``alpha_t`` the low-passed estimate), less the dock's
+    own lever-arm acceleration about the chaser's centre of mass. This feed-forward is served
+    first; the PD ``kd (h' + sat(lam h, v_hold_max))`` gets what thrust is left on each axis.
 ``close``
     Once the attitude error, the relative rate and the hold error across the axis (all low-passed
-    over ``metric_filter_s``) have stayed inside the matching thresholds for ``dwell_s``, ``s`` slides to zero along the port axis on a glideslope ending at
-    ``v_final`` (inside the capture envelope); it freezes (hold point) while any of them leaves a
-    looser band, and the dwell restarts.
+    over ``metric_filter_s``) have stayed inside the matching thresholds for ``dwell_s``, ``s``
+    slides to zero along the port axis on a glideslope ending at ``v_final`` (inside the capture
+    envelope); it freezes (hold point) while any of them leaves a looser band, and the dwell
+    restarts.
 ``safe``
-    **Loss of pose (bearing mode, search, loss of track): never act on a stale pose.** Torque is
-    zero, so the chaser keeps the inertial rate it had (the synchronised spin is the best
-    open-loop continuation and keeps the target near the boresight); thrust brakes a closing
-    range rate along the line of sight (bearing) when both are valid, else the chaser coasts.
-    On reacquisition the controller re-enters ``approach`` or ``sync`` by range and must dwell
-    again before closing.
+    **Loss of pose (bearing mode, search, loss of track): never correct toward a stale pose.**
+    Torque is zero, so the chaser keeps the inertial rate it had (the synchronised spin is the
+    best open-loop continuation and keeps the target near the boresight). A chaser that was
+    synchronised (``sync``/``close``) keeps turning about the target's centre of mass for up to
+    ``hold_after_loss_s``: its thrust is the centripetal acceleration ``-w x (w x r_com)`` of the
+    last synchronised geometry at the gyro's rate (released, it would fly off along the tangent
+    at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and take the target out of the field of view). Outside
+    that window thrust brakes a closing range rate along the line of sight (bearing) when both
+    are valid, else the chaser coasts. On reacquisition the controller re-enters ``approach`` or
+    ``sync`` by range and must dwell again before closing.
 """
 
 from __future__ import annotations
@@ -52,7 +62,7 @@ import numpy.typing as npt
 from agents.lqr import loss_of_track_accel, saturate
 from perception.config import MissionConfig
 from perception.geometry import quat_to_matrix
-from tridar_env.env import observation_slices
+from tridar_env.env import make_target, observation_slices
 
 _S = observation_slices()
 FloatArray = npt.NDArray[np.float64]
@@ -99,6 +109,7 @@ class SyncGains:
     dwell_s: float = 5.0
     loose: float = 2.0  # closing freezes when an error exceeds loose * its threshold
     brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate
+    hold_after_loss_s: float = 20.0  # [s] a synchronised chaser keeps its circle this long
 
 
 class SyncController:
@@ -132,6 +143,9 @@ class SyncController:
         self.inertia = (ch.dry_mass_kg + ch.propellant_kg) * (2.0 * ch.hull_radius_m) ** 2 / 6.0
         self.d = np.array(ch.dock_position_m, dtype=np.float64)  # dock origin, body frame [m]
         self.alpha_max = self.max_torque / self.inertia  # [rad/s^2] per axis
+        # The port's lever about the target's centre of mass, port frame (the target's design data).
+        T_tp = make_target(cfg).T_target_port
+        self.port_lever = T_tp[:3, :3].T @ T_tp[:3, 3]
         self.reset()
 
     def reset(self) -> None:
@@ -145,6 +159,8 @@ class SyncController:
         self._metrics: FloatArray | None = None  # low-passed (e, w_rel, h_perp, h_dot_perp)
         self._w_rel_f: FloatArray | None = None  # filtered relative rate (sync and close)
         self._alpha_applied = np.zeros(3)  # chaser angular acceleration of the last action
+        self._r_com: FloatArray | None = None  # target CoM from the chaser's, last synced frame
+        self._held = 0  # steps spent continuing the synchronised circle after a loss of pose
 
     # ------------------------------------------------------------------ helpers
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
@@ -188,7 +204,14 @@ class SyncController:
             self._w_t_prev = None
             self._metrics = None
             self._w_rel_f = None
+            if self._r_com is not None and self._held * self.dt < g.hold_after_loss_s - 1e-9:
+                # keep turning about the target's centre of mass as the synchronised chaser was
+                self._held += 1
+                a = -np.cross(w, np.cross(w, self._r_com))
+                return _allocate(a, np.zeros(3), self.max_thrust / self._mass(obs)), np.zeros(3)
+            self._r_com = None
             return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
+        self._held = 0
 
         p = obs[_S["port_position_dock"]].astype(np.float64)
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
@@ -208,6 +231,7 @@ class SyncController:
 
         if self.phase == "approach":
             self._w_rel_f = None
+            self._r_com = None
             return self._approach(p, p_dot, w, w_rel, dist)
 
         w_rel = self._filter_rate(w, w_rel, alpha_t)
@@ -216,11 +240,13 @@ class SyncController:
         w_des = _sat(g.att_lam * e, g.w_max)
         # what the torque limit lets through (the translation compensates the actual alpha)
         alpha = saturate((g.att_kd * (w_rel + w_des) + alpha_t) / self.alpha_max) * self.alpha_max
-        # ---- translation: hold the point s ahead of the port on its axis
+        # ---- translation: hold the point s ahead of the port on its axis, in the target's frame
         u = R_dp @ np.array([0.0, 0.0, 1.0])
-        u_dot = np.cross(w_rel, u)
+        w_t = w + w_rel  # the target's inertial rate, body coordinates
+        r_p = R_dp @ self.port_lever  # port relative to the target's centre of mass
+        p_dot_t = p_dot - np.cross(w_rel, p)  # the port's velocity seen from the target's frame
         h = p + self.s * u
-        h_dot = p_dot + self.s * u_dot
+        h_dot = p_dot_t + self.s_dot * u
         # matching is judged across the axis: along it the hold point is allowed to move
         self._update_phase(e, w_rel, h - (h @ u) * u, h_dot - (h_dot @ u) * u)
         if self.phase == "close":
@@ -232,12 +258,18 @@ class SyncController:
             self.s_dot = 0.0
         self.s += self.s_dot * self.dt
         h = p + self.s * u
-        h_dot = p_dot + self.s * u_dot + self.s_dot * u
-        r = p + self.d  # port relative to the chaser's centre of mass, body frame
-        rotating = np.cross(alpha, r) + np.cross(w, np.cross(w, r)) + 2.0 * np.cross(w, p_dot)
+        h_dot = p_dot_t + self.s_dot * u
+        rho = r_p - p  # the dock relative to the target's centre of mass
+        # The dock's acceleration that keeps it fixed in the target's rotating frame (centripetal,
+        # Euler and Coriolis terms of the target's rotation), minus the dock's own lever-arm
+        # acceleration about the chaser's centre of mass: the model part, served first.
+        a_ff = (np.cross(alpha_t, rho) + np.cross(w_t, np.cross(w_t, rho))
+                - 2.0 * np.cross(w_t, h_dot - self.s_dot * u)
+                - np.cross(alpha, self.d) - np.cross(w, np.cross(w, self.d)))
         h_dot_des = -_sat(g.lam * h, g.v_hold_max)
-        a = g.kd * (h_dot - h_dot_des) - rotating
-        return a, alpha
+        a_fb = g.kd * (h_dot - h_dot_des)
+        self._r_com = self.d + p - r_p  # the target's centre of mass from the chaser's
+        return _allocate(a_ff, a_fb, self.max_thrust / self._mass(obs)), alpha
 
     def _approach(
         self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray, dist: float
@@ -296,6 +328,25 @@ class SyncController:
         out = np.concatenate([saturate(thrust), saturate(torque / self.max_torque)])
         self._alpha_applied = out[3:] * self.max_torque / self.inertia
         return out.astype(np.float32)
+
+
+def _allocate(a_ff: FloatArray, a_fb: FloatArray, limit: float) -> FloatArray:
+    """``a_ff + k a_fb`` with the largest ``k`` in [0, 1] that keeps every axis within ``limit``.
+
+    The feed-forward (what keeps the chaser on its rotating hold point) is served first; scaling
+    the sum as a whole would shrink the centripetal term too and let the chaser drift outward,
+    which then needs more thrust. When the feed-forward alone exceeds the limit it is scaled down.
+    """
+    over = float(np.max(np.abs(a_ff))) / limit
+    if over >= 1.0:
+        return a_ff / over
+    k = 1.0
+    for f, b in zip(a_ff, a_fb):
+        if b > 0.0:
+            k = min(k, (limit - f) / b)
+        elif b < 0.0:
+            k = min(k, (-limit - f) / b)
+    return a_ff + max(k, 0.0) * a_fb
 
 
 def _sat(v: FloatArray, limit: float) -> FloatArray:

@@ -67,7 +67,8 @@ def _resolve_config(config: str | Path | MissionConfig | dict[str, Any] | None, 
     return load_config(config, **overrides)
 
 
-def _make_target(cfg: MissionConfig) -> TargetModel:
+def make_target(cfg: MissionConfig) -> TargetModel:
+    """The target model a mission config names (a library target or a mesh file with its port)."""
     tc = cfg.target
     if Path(tc.name).suffix:
         port = (tc.port_position_m, tc.port_axis) if tc.port_position_m is not None else None
@@ -181,7 +182,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}; expected one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
-        self.target = _make_target(self.cfg)
+        self.target = make_target(self.cfg)
         self.world = World(self.cfg, self.target)
         self.observer: Observer = make_observer(self.cfg, self.target)
         ch = self.cfg.dynamics.chaser

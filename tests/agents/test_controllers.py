@@ -104,26 +104,95 @@ def test_lqr_closed_loop_is_stable_and_feedforward_tracks_the_aim() -> None:
     assert ctrl.z_aim == pytest.approx(z - ctrl._aim_speed(z) * ctrl.dt)
 
 
-def test_sync_compensates_the_rotating_frame_terms() -> None:
+def _synced_obs(ctrl: SyncController, w: np.ndarray, w_rel: np.ndarray) -> np.ndarray:
+    """On the hold point, aligned, and fixed in the target's frame, at chaser rate ``w``."""
+    s = ctrl.g.standoff_m
+    p = np.array([0.0, 0.0, s])
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["valid"]] = 1.0
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["port_position_dock"]] = p
+    obs[S["port_velocity_dock"]] = np.cross(w_rel, p)  # the body-frame rate of a target-fixed point
+    obs[S["q_dock_port"]] = [0.0, 1.0, 0.0, 0.0]  # R_dock_port = diag(1, -1, -1): aligned
+    obs[S["omega_port_dock"]] = w_rel
+    obs[S["chaser_rate_body"]] = w
+    return obs
+
+
+def test_sync_holds_the_dock_on_its_circle_about_the_target_centre_of_mass() -> None:
     """Synchronised and on the hold point, the thrust is exactly the centripetal term."""
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)
     ctrl.phase = "sync"
-    s = ctrl.g.standoff_m
-    w = np.array([0.02, -0.01, 0.05])  # chaser (= port) inertial rate, body frame [rad/s]
-    obs = np.zeros(OBS_DIM, dtype=np.float32)
-    obs[S["valid"]] = 1.0
-    obs[S["fuel_fraction"]] = 1.0
-    obs[S["port_position_dock"]] = [0.0, 0.0, s]
-    obs[S["q_dock_port"]] = [0.0, 1.0, 0.0, 0.0]  # R_dock_port = diag(1, -1, -1): aligned
-    obs[S["chaser_rate_body"]] = w
+    obs = _synced_obs(ctrl, np.array([0.02, -0.01, 0.05]), np.zeros(3))
     w = obs[S["chaser_rate_body"]].astype(np.float64)
     a, alpha = ctrl.command(obs)
-    r = np.array([0.0, 0.0, s]) + np.asarray(cfg.dynamics.chaser.dock_position_m)
+    # chaser centre of mass -> target centre of mass: dock offset + port - the port's lever
+    r_port = np.diag([1.0, -1.0, -1.0]) @ ctrl.port_lever
+    assert np.linalg.norm(r_port) > 0.2  # the CYGNSS-like port sits 0.26 m off the centre of mass
+    r = np.array([0.0, 0.0, ctrl.g.standoff_m]) + np.asarray(cfg.dynamics.chaser.dock_position_m) - r_port
     expected = -np.cross(w, np.cross(w, r))
     np.testing.assert_allclose(a, expected, atol=1e-9)
     assert np.linalg.norm(expected) > 4e-3  # the term matters: 7% of 10 N / 170 kg
     np.testing.assert_allclose(alpha, 0.0, atol=1e-12)
+
+
+def test_sync_translation_ignores_the_chasers_own_rate_error() -> None:
+    """A chaser turning faster than the target but on its hold point needs no correction.
+
+    The hold point is fixed in the target's frame, so only the target's rotation sets the dock's
+    acceleration; the chaser's own rate enters only through its dock's lever arm.
+    """
+    cfg = load_config("tumbling_target", env__perception="truth")
+    w_t = np.array([0.0, 0.08, 0.01])  # the target's inertial rate, 4.6 deg/s
+    dock = np.asarray(cfg.dynamics.chaser.dock_position_m)
+    out = []
+    for dw in (np.zeros(3), np.array([0.03, 0.05, -0.02])):
+        ctrl = SyncController(cfg)
+        ctrl.phase = "sync"
+        w = w_t + dw
+        a, alpha = ctrl.command(_synced_obs(ctrl, w, w_t - w))
+        out.append(a + np.cross(alpha, dock) + np.cross(w, np.cross(w, dock)))
+    np.testing.assert_allclose(out[1], out[0], atol=1e-6)
+    assert np.linalg.norm(out[0]) > 0.02  # the target's centripetal term on a ~3.9 m circle
+
+
+def test_sync_thrust_serves_the_feed_forward_before_the_feedback() -> None:
+    """Saturated, the PD is cut back and the centripetal part survives whole."""
+    from agents.sync import _allocate
+
+    ff = np.array([0.0, 0.01, 0.03])
+    fb = np.array([0.05, -0.2, 0.1])
+    a = _allocate(ff, fb, 0.05)
+    assert np.max(np.abs(a)) == pytest.approx(0.05)
+    k = (a - ff) / fb
+    np.testing.assert_allclose(k, k[0])  # one factor on the feedback, none on the feed-forward
+    assert 0.0 < k[0] < 1.0
+    np.testing.assert_allclose(_allocate(ff, 0.1 * fb, 0.05), ff + 0.1 * fb)  # inside: untouched
+    np.testing.assert_allclose(_allocate(2.0 * ff, fb, 0.05), 2.0 * ff * 0.05 / 0.06)
+
+
+def test_sync_keeps_its_circle_for_a_while_after_losing_the_pose() -> None:
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    ctrl.phase = "sync"
+    w = np.array([0.0, 0.08, 0.0])
+    ctrl(_synced_obs(ctrl, w, np.zeros(3)))
+    r_com = ctrl._r_com.copy()
+    lost = _bearing_obs(-0.2, 0.0, 0.0)
+    lost[S["chaser_rate_body"]] = w
+    mass = cfg.dynamics.chaser.dry_mass_kg + cfg.dynamics.chaser.propellant_kg
+    steps = round(ctrl.g.hold_after_loss_s / ctrl.dt)
+    for _ in range(steps):
+        act = ctrl(lost).astype(np.float64)
+        assert ctrl.phase == "safe"
+        np.testing.assert_array_equal(act[3:], 0.0)
+        centripetal = -np.cross(w, np.cross(w, r_com)) * mass / cfg.dynamics.chaser.max_thrust_n
+        np.testing.assert_allclose(act[:3], centripetal, atol=1e-6)
+        assert act[:3] @ r_com > 0.0  # toward the target's centre of mass
+    # then the plain rule: brake the closing rate along the line of sight
+    act = ctrl(lost).astype(np.float64)
+    assert act[2] < -0.05 and abs(act[0]) < 1e-6
 
 
 def test_sync_closes_only_after_dwelling_matched() -> None:

@@ -371,24 +371,26 @@ class FaceGrid:
         owner = np.repeat(np.arange(found.size), cnt)
         face = self.faces[slot].astype(np.intp)
         pl = self.planes[face]
-        x = q[found][owner]
+        at = found[owner]
+        x = q[at]
         v = np.einsum("kij,kj->ki", pl[:, :, :3], x) + pl[:, :, 3]
-        out = np.maximum(v[:, 1:].max(axis=1), 0.0)
+        # (a max over a 3-wide axis is several times slower than two elementwise maxima)
+        out = np.maximum(np.maximum(np.maximum(v[:, 1], v[:, 2]), v[:, 3]), 0.0)
         d2 = v[:, 0] ** 2 + out**2
         if rays is not None:
-            back = np.einsum("ki,ki->k", pl[:, 0, :3], rays[found][owner]) >= back_cos
-            d2[back] = np.inf
+            rd = rays[at]
+            nd = np.einsum("ki,ki->k", pl[:, 0, :3], rd)
+            d2[nd >= back_cos] = np.inf
         d2_euclid = d2
         if rays is not None and along_rays and total:
             # Ray parameter of each candidate plane's crossing (lam along the ray from the point)
             # and the edge tests at the crossing; the nearest crossing inside its facet wins.
-            rd = rays[found][owner]
-            nd = np.einsum("ki,ki->k", pl[:, 0, :3], rd)
             md = np.einsum("kij,kj->ki", pl[:, 1:, :3], rd)
             with np.errstate(divide="ignore", invalid="ignore"):
                 lam = -v[:, 0] / nd
             vin = v[:, 1:] + lam[:, None] * md
-            hit = (nd < -1e-6) & (vin.max(axis=1) <= 1e-9) & np.isfinite(d2)
+            vmax = np.maximum(np.maximum(vin[:, 0], vin[:, 1]), vin[:, 2])
+            hit = (nd < -1e-6) & (vmax <= 1e-9) & np.isfinite(d2)
             key = np.where(hit, lam * lam, np.inf)
             kmin = np.minimum.reduceat(key, ends - cnt)
             has = np.repeat(np.isfinite(kmin), cnt)
@@ -768,6 +770,16 @@ def _samples_match(mc: ModelCloud, q: FloatArray, rows: npt.NDArray[np.intp], ga
     return _Matches(sel, dist[ok], nrm, foot, r)
 
 
+def _median(x: FloatArray) -> float:
+    """``np.median`` of a 1-D array (the same value) without its per-call overhead."""
+    n = x.size
+    k = n // 2
+    if n % 2:
+        return float(np.partition(x, k)[k])
+    part = np.partition(x, (k - 1, k))
+    return float((part[k - 1] + part[k]) / 2.0)
+
+
 def _correspond(
     mc: ModelCloud,
     q: FloatArray,
@@ -945,7 +957,7 @@ def icp(
             # Adaptive gate on the median match distance: once the pose is close, a stray
             # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
             # keeps it while fewer than trim_fraction of the points are strays).
-            thr = max(median_floor, gate_k * float(np.median(m.dist)))
+            thr = max(median_floor, gate_k * _median(m.dist))
             if thr < gate:
                 far = m.dist > thr
                 if far.any() and m.sel.size - int(far.sum()) >= min_pts:
@@ -976,7 +988,7 @@ def icp(
             # Soft (Cauchy) down-weighting on the distance, scaled by the current spread: parts
             # missing from the model cannot drag the coarse solution, a misaligned face still pulls.
             w = w * _kernel_weights(
-                m.dist / max(gate_floor, 1.5 * float(np.median(m.dist))), "cauchy", 1.0
+                m.dist / max(gate_floor, 1.5 * _median(m.dist)), "cauchy", 1.0
             )
         cost = float(np.sum(w * r * r) / np.sum(w * var))
         Hm = None
@@ -1050,7 +1062,7 @@ def icp(
                 fine = True
                 prev_cost = np.inf
             continue
-        new_gate = max(gate_floor, min(gate, 3.0 * float(np.median(m.dist))))
+        new_gate = max(gate_floor, min(gate, 3.0 * _median(m.dist)))
         gate_settled = new_gate >= 0.98 * gate
         gate = new_gate
         small_step = step_t < cfg.translation_tol_m and step_r < cfg.rotation_tol_rad

@@ -18,7 +18,8 @@ Phases (:attr:`SyncController.phase`):
 ``sync``
     Attitude: match the port. The error ``e = rotvec(R_dock_port R_aligned)`` (``R_aligned =
     diag(1, -1, -1)``) and ``w_rel`` drive a rate-limited PD, with the port's inertial angular
-    acceleration (finite differences of ``w + w_rel``, low-passed) as feed-forward. ``w_rel``
+    acceleration (Euler's torque-free equations at the estimated rate ``w + w_rel`` with the
+    target's inertia, design data like the port's lever) as feed-forward. ``w_rel``
     goes through a predictor-corrector that knows the torque just applied
     (``d/dt w_rel = alpha_port - alpha_chaser - w x w_rel``), which averages estimate noise
     without lagging the control.
@@ -30,9 +31,14 @@ Phases (:attr:`SyncController.phase`):
     saturated the thrust until the chaser fell off its circle). The dock at ``rho`` from the
     target's centre of mass (``rho = r_port - p``, the port's lever from the target's design data)
     needs the acceleration ``alpha_t x rho + w_t x (w_t x rho) - 2 w_t x h'`` of a point fixed in
-    the rotating target (``w_t = w + w_rel``, ``alpha_t`` the low-passed estimate), less the dock's
+    the rotating target (``w_t = w + w_rel``, ``alpha_t`` from Euler's equations), less the dock's
     own lever-arm acceleration about the chaser's centre of mass. This feed-forward is served
     first; the PD ``kd (h' + sat(lam h, v_hold_max))`` gets what thrust is left on each axis.
+    Outside a cone of ``approach_cone_deg`` about the port axis (widened by the hull radius),
+    the desired velocity may not
+    close on the target faster than ``lam`` times the distance to a keep-out sphere (the
+    target's radius + the hull + ``keep_out_margin_m``): the chaser goes around the wings to a
+    port that faces away.
 ``close``
     Once the attitude error, the relative rate and the hold error across the axis (all low-passed
     over ``metric_filter_s``) have stayed inside the matching thresholds for ``dwell_s``, ``s``
@@ -98,7 +104,6 @@ class SyncGains:
     att_lam: float = 0.1  # [1/s] sync/close: lower bandwidth, the pose estimate is noisier
     att_kd: float = 0.6  # [1/s]  than the line of sight
     w_max: float = 0.1  # [rad/s]
-    alpha_filter_s: float = 5.0  # [s] low-pass of the port's angular acceleration (feed-forward)
     rate_gain: float = 0.3  # correction gain of the relative-rate predictor-corrector
     metric_filter_s: float = 2.0  # [s] low-pass of the errors judged for closing
     # matching thresholds to start closing (and looser ones to keep closing)
@@ -110,6 +115,10 @@ class SyncGains:
     loose: float = 2.0  # closing freezes when an error exceeds loose * its threshold
     brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate
     hold_after_loss_s: float = 20.0  # [s] a synchronised chaser keeps its circle this long
+    # keep-out sphere about the target's centre of mass (target radius + hull + margin), left
+    # only inside the approach cone about the port axis
+    keep_out_margin_m: float = 0.3
+    approach_cone_deg: float = 30.0
 
 
 class SyncController:
@@ -144,8 +153,14 @@ class SyncController:
         self.d = np.array(ch.dock_position_m, dtype=np.float64)  # dock origin, body frame [m]
         self.alpha_max = self.max_torque / self.inertia  # [rad/s^2] per axis
         # The port's lever about the target's centre of mass, port frame (the target's design data).
-        T_tp = make_target(cfg).T_target_port
+        target = make_target(cfg)
+        T_tp = target.T_target_port
         self.port_lever = T_tp[:3, :3].T @ T_tp[:3, 3]
+        self.R_port_target = T_tp[:3, :3].T
+        self.target_inertia = np.asarray(target.inertia, dtype=np.float64)  # [kg m^2], body axes
+        self.keep_out_m = target.radius + ch.hull_radius_m + self.g.keep_out_margin_m
+        self.hull = ch.hull_radius_m
+        self._cone_tan = float(np.tan(np.radians(self.g.approach_cone_deg)))
         self.reset()
 
     def reset(self) -> None:
@@ -154,8 +169,6 @@ class SyncController:
         self.s = self.g.standoff_m
         self.s_dot = 0.0
         self.dwell = 0.0
-        self._w_t_prev: FloatArray | None = None
-        self._alpha_t = np.zeros(3)
         self._metrics: FloatArray | None = None  # low-passed (e, w_rel, h_perp, h_dot_perp)
         self._w_rel_f: FloatArray | None = None  # filtered relative rate (sync and close)
         self._alpha_applied = np.zeros(3)  # chaser angular acceleration of the last action
@@ -166,16 +179,17 @@ class SyncController:
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
 
-    def _port_alpha(self, w: FloatArray, w_rel: FloatArray) -> FloatArray:
-        """Low-passed inertial angular acceleration of the port, body frame [rad/s^2]."""
-        w_t = w + w_rel  # port inertial rate, body coordinates
-        if self._w_t_prev is not None:
-            # d/dt (inertial) = d/dt (body) + w x w_t
-            raw = (w_t - self._w_t_prev) / self.dt + np.cross(w, w_t)
-            k = self.dt / (self.g.alpha_filter_s + self.dt)
-            self._alpha_t = self._alpha_t + k * (raw - self._alpha_t)
-        self._w_t_prev = w_t
-        return self._alpha_t
+    def _port_alpha(self, w_t: FloatArray, R_dp: FloatArray) -> FloatArray:
+        """The target's inertial angular acceleration, docking frame [rad/s^2].
+
+        Torque-free: ``I dw/dt = -w x I w`` in the target's body axes (the same derivative in the
+        inertial frame), from the estimated rate and the target's inertia. Differencing the
+        estimated rate instead needs a low-pass whose lag, times the 3-4 m lever of the hold
+        point, left centimetres of hold error on a nutating target.
+        """
+        R_dt = R_dp @ self.R_port_target  # target axes in the docking frame
+        wb = R_dt.T @ w_t
+        return R_dt @ np.linalg.solve(self.target_inertia, -np.cross(wb, self.target_inertia @ wb))
 
     def _filter_rate(self, w: FloatArray, w_rel: FloatArray, alpha_t: FloatArray) -> FloatArray:
         """Relative rate through a predictor-corrector that knows the torque just applied.
@@ -201,7 +215,6 @@ class SyncController:
         if not (valid[3] > 0.5 and valid[4] > 0.5 and valid[5] > 0.5 and valid[6] > 0.5):
             self.phase = "safe"
             self.dwell = 0.0
-            self._w_t_prev = None
             self._metrics = None
             self._w_rel_f = None
             if self._r_com is not None and self._held * self.dt < g.hold_after_loss_s - 1e-9:
@@ -217,7 +230,7 @@ class SyncController:
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
         R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64))
         w_rel = obs[_S["omega_port_dock"]].astype(np.float64)
-        alpha_t = self._port_alpha(w, w_rel)
+        alpha_t = self._port_alpha(w + w_rel, R_dp)
         dist = float(np.linalg.norm(p))
 
         if self.phase == "safe":
@@ -235,6 +248,7 @@ class SyncController:
             return self._approach(p, p_dot, w, w_rel, dist)
 
         w_rel = self._filter_rate(w, w_rel, alpha_t)
+        alpha_t = self._port_alpha(w + w_rel, R_dp)
         # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration)
         e = _rotvec(R_dp @ R_ALIGNED)
         w_des = _sat(g.att_lam * e, g.w_max)
@@ -266,10 +280,33 @@ class SyncController:
         a_ff = (np.cross(alpha_t, rho) + np.cross(w_t, np.cross(w_t, rho))
                 - 2.0 * np.cross(w_t, h_dot - self.s_dot * u)
                 - np.cross(alpha, self.d) - np.cross(w, np.cross(w, self.d)))
-        h_dot_des = -_sat(g.lam * h, g.v_hold_max)
+        h_dot_des = -self._keep_out(_sat(g.lam * h, g.v_hold_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
         self._r_com = self.d + p - r_p  # the target's centre of mass from the chaser's
         return _allocate(a_ff, a_fb, self.max_thrust / self._mass(obs)), alpha
+
+    def _keep_out(self, v: FloatArray, p: FloatArray, u: FloatArray, r_p: FloatArray) -> FloatArray:
+        """Limit the dock's desired velocity ``v`` (target frame) at the keep-out sphere.
+
+        Outside the approach corridor (a cone about the port axis widened by the hull radius, so
+        that the last centimetres and the estimate's noise there stay inside it) the chaser's
+        centre of mass may close on the target's only as fast as ``lam`` times its distance to
+        the sphere (pushed back out when inside): the way to a hold point on the far side of a
+        slowly turning target goes around the wings, not across them. Inside the corridor the
+        docking axis is the way in.
+        """
+        ax = -float(p @ u)  # the dock ahead of the port along its axis
+        lat = float(np.linalg.norm(p + ax * u))
+        if ax >= -self.hull and lat <= self.hull + self._cone_tan * max(ax, 0.0):
+            return v  # in the approach corridor
+        rho = r_p - p - self.d  # chaser's centre of mass from the target's
+        D = float(np.linalg.norm(rho))
+        if D < 1e-9:
+            return v
+        e = rho / D
+        v_min = -self.g.lam * (D - self.keep_out_m)
+        vr = float(v @ e)
+        return v + (v_min - vr) * e if vr < v_min else v
 
     def _approach(
         self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray, dist: float

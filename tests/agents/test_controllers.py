@@ -124,8 +124,13 @@ def test_sync_holds_the_dock_on_its_circle_about_the_target_centre_of_mass() -> 
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)
     ctrl.phase = "sync"
-    obs = _synced_obs(ctrl, np.array([0.02, -0.01, 0.05]), np.zeros(3))
+    # a steady spin about the target's minimum-inertia axis (no Euler acceleration), across the
+    # port axis: the dock circles the target's centre of mass ~3.9 m away
+    R_dt = np.diag([1.0, -1.0, -1.0]) @ ctrl.R_port_target
+    axis = np.linalg.eigh(ctrl.target_inertia)[1][:, 0]
+    obs = _synced_obs(ctrl, 0.05 * (R_dt @ axis), np.zeros(3))
     w = obs[S["chaser_rate_body"]].astype(np.float64)
+    np.testing.assert_allclose(ctrl._port_alpha(w, np.diag([1.0, -1.0, -1.0])), 0.0, atol=1e-10)
     a, alpha = ctrl.command(obs)
     # chaser centre of mass -> target centre of mass: dock offset + port - the port's lever
     r_port = np.diag([1.0, -1.0, -1.0]) @ ctrl.port_lever
@@ -135,6 +140,25 @@ def test_sync_holds_the_dock_on_its_circle_about_the_target_centre_of_mass() -> 
     np.testing.assert_allclose(a, expected, atol=1e-9)
     assert np.linalg.norm(expected) > 4e-3  # the term matters: 7% of 10 N / 170 kg
     np.testing.assert_allclose(alpha, 0.0, atol=1e-12)
+
+
+def test_sync_port_acceleration_follows_eulers_equations() -> None:
+    """Off a principal axis the target's rate turns: the feed-forward is I^-1 (-w x I w)."""
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    R_dp = np.diag([1.0, -1.0, -1.0])  # aligned: target axes = port axes turned by R_ALIGNED
+    R_dt = R_dp @ ctrl.R_port_target
+    wb = np.radians([3.0, 0.5, 1.0])  # body rate of the target [rad/s]
+    I = ctrl.target_inertia
+    expected = R_dt @ np.linalg.solve(I, -np.cross(wb, I @ wb))
+    np.testing.assert_allclose(ctrl._port_alpha(R_dt @ wb, R_dp), expected, rtol=1e-12)
+    # a finite-difference check against the torque-free motion itself
+    from scipy.integrate import solve_ivp
+
+    sol = solve_ivp(lambda t, w: np.linalg.solve(I, -np.cross(w, I @ w)), (0, 1e-3), wb,
+                    rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(R_dt @ (sol.y[:, -1] - wb) / 1e-3, expected, rtol=1e-3)
+    assert np.linalg.norm(expected) > 1e-4
 
 
 def test_sync_translation_ignores_the_chasers_own_rate_error() -> None:
@@ -155,6 +179,33 @@ def test_sync_translation_ignores_the_chasers_own_rate_error() -> None:
         out.append(a + np.cross(alpha, dock) + np.cross(w, np.cross(w, dock)))
     np.testing.assert_allclose(out[1], out[0], atol=1e-6)
     assert np.linalg.norm(out[0]) > 0.02  # the target's centripetal term on a ~3.9 m circle
+
+
+def test_sync_goes_around_the_target_to_a_port_that_faces_away() -> None:
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    d = np.asarray(cfg.dynamics.chaser.dock_position_m)
+    r_p = np.array([0.0, 0.0, -0.26])  # port 0.26 m from the target's centre, toward the chaser
+    u = np.array([1.0, 0.0, 0.0])  # ... but its axis points sideways: 90 deg out of the cone
+    inward = np.array([0.0, 0.0, 0.25])  # straight at the target
+    for gap in (1.0, 0.1, -0.2):  # chaser centre of mass outside, at and inside the sphere
+        p = r_p + np.array([0.0, 0.0, ctrl.keep_out_m + gap]) - d
+        rho = r_p - p - d
+        e = rho / np.linalg.norm(rho)
+        v = ctrl._keep_out(inward, p, u, r_p)
+        assert v @ e == pytest.approx(-ctrl.g.lam * gap)  # closing slows to 0 at the sphere
+        np.testing.assert_allclose(v - (v @ e) * e, 0.0, atol=1e-12)  # nothing else changes
+    # inside the sphere even a sideways velocity gets pushed out; outside it is left alone
+    sideways = np.array([0.2, 0.0, 0.0])
+    assert ctrl._keep_out(sideways, p, u, r_p)[2] < 0.0
+    p_out = r_p + np.array([0.0, 0.0, ctrl.keep_out_m + 1.0]) - d
+    np.testing.assert_array_equal(ctrl._keep_out(sideways, p_out, u, r_p), sideways)
+    # on the port axis (inside the approach cone) the way in is free
+    p_axis = np.array([0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(ctrl._keep_out(inward, p_axis, np.array([0.0, 0.0, -1.0]), r_p), inward)
+    # ... down to contact, where a centimetre of estimate noise is a large angle about the port
+    p_contact = np.array([0.01, 0.005, 0.004])
+    np.testing.assert_array_equal(ctrl._keep_out(inward, p_contact, np.array([0.0, 0.0, -1.0]), r_p), inward)
 
 
 def test_sync_thrust_serves_the_feed_forward_before_the_feedback() -> None:

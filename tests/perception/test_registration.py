@@ -336,3 +336,16 @@ def test_face_grid_matches_trimesh_closest_point():
     # Samples lie on their own faces: every one is found at zero distance.
     f, dd, _, _ = grid.nearest(np.asarray(pts))
     assert f.size == len(pts) and np.all(dd < 1e-12)
+
+
+def test_partition_median_equals_numpy_median_bit_for_bit() -> None:
+    """The gate's median must not change a single ICP result (it only drops per-call overhead)."""
+    from perception.registration import _median
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 7, 10, 699, 700):
+        for scale in (1e-3, 1.0, 30.0):
+            x = rng.random(n) * scale
+            assert _median(x) == float(np.median(x))
+            x[rng.integers(n)] = x[0]  # ties
+            assert _median(x) == float(np.median(x))

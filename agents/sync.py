@@ -51,7 +51,8 @@ Phases (:attr:`SyncController.phase`):
     best open-loop continuation and keeps the target near the boresight). A chaser that was
     synchronised (``sync``/``close``) keeps turning about the target's centre of mass for up to
     ``hold_after_loss_s``: its thrust is the centripetal acceleration ``-w x (w x r_com)`` of the
-    last synchronised geometry at the gyro's rate (released, it would fly off along the tangent
+    last geometry in which it was matched (every error within ``loose`` times its threshold; a
+    chaser still swinging into line would be pulled inward by its own rate) at the gyro's rate (released, it would fly off along the tangent
     at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and take the target out of the field of view). Outside
     that window thrust brakes a closing range rate along the line of sight (bearing) when both
     are valid, else the chaser coasts. On reacquisition the controller re-enters ``approach`` or
@@ -173,6 +174,7 @@ class SyncController:
         self._w_rel_f: FloatArray | None = None  # filtered relative rate (sync and close)
         self._alpha_applied = np.zeros(3)  # chaser angular acceleration of the last action
         self._r_com: FloatArray | None = None  # target CoM from the chaser's, last synced frame
+        self._match = np.inf  # worst low-passed matching error / its threshold
         self._held = 0  # steps spent continuing the synchronised circle after a loss of pose
 
     # ------------------------------------------------------------------ helpers
@@ -216,6 +218,7 @@ class SyncController:
             self.phase = "safe"
             self.dwell = 0.0
             self._metrics = None
+            self._match = np.inf
             self._w_rel_f = None
             if self._r_com is not None and self._held * self.dt < g.hold_after_loss_s - 1e-9:
                 # keep turning about the target's centre of mass as the synchronised chaser was
@@ -282,7 +285,9 @@ class SyncController:
                 - np.cross(alpha, self.d) - np.cross(w, np.cross(w, self.d)))
         h_dot_des = -self._keep_out(_sat(g.lam * h, g.v_hold_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
-        self._r_com = self.d + p - r_p  # the target's centre of mass from the chaser's
+        # the geometry to keep after a loss of pose, only while matched: a chaser still swinging
+        # into line turns at up to w_max, and that rate's centripetal would pull it inward
+        self._r_com = self.d + p - r_p if self._match <= g.loose else None
         return _allocate(a_ff, a_fb, self.max_thrust / self._mass(obs)), alpha
 
     def _keep_out(self, v: FloatArray, p: FloatArray, u: FloatArray, r_p: FloatArray) -> FloatArray:
@@ -348,6 +353,7 @@ class SyncController:
             float(np.linalg.norm(m[9:12])) / g.hold_rate_ok_m_s,
         )
         worst = max(errs)
+        self._match = worst
         if self.phase == "sync":
             self.dwell = self.dwell + self.dt if worst <= 1.0 else 0.0
             if self.dwell >= g.dwell_s - 1e-9:

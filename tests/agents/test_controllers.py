@@ -244,6 +244,13 @@ def test_sync_keeps_its_circle_for_a_while_after_losing_the_pose() -> None:
     # then the plain rule: brake the closing rate along the line of sight
     act = ctrl(lost).astype(np.float64)
     assert act[2] < -0.05 and abs(act[0]) < 1e-6
+    # a chaser still swinging into line (5 deg/s relative) was not synchronised: no circle to keep
+    ctrl = SyncController(cfg)
+    ctrl.phase = "sync"
+    ctrl(_synced_obs(ctrl, w, np.radians([0.0, 5.0, 0.0])))
+    assert ctrl._r_com is None
+    act = ctrl(lost).astype(np.float64)
+    assert act[2] < -0.05 and abs(act[0]) < 1e-6
 
 
 def test_sync_closes_only_after_dwelling_matched() -> None:

@@ -16,11 +16,13 @@ Phases (:attr:`SyncController.phase`):
     on the *inertial* relative velocity of the port seen from the chaser's centre of mass,
     ``p_dot + w x (p + d)``, so no rotating-frame term appears.
 ``sync``
-    Attitude: match the port. The error ``e = rotvec(R_dock_port R_aligned)`` (``R_aligned =
-    diag(1, -1, -1)``) and ``w_rel`` drive a rate-limited PD, with the port's inertial angular
-    acceleration (Euler's torque-free equations at the estimated rate ``w + w_rel`` with the
-    target's inertia, design data like the port's lever) as feed-forward. ``w_rel``
-    goes through a predictor-corrector that knows the torque just applied
+    Attitude: in the approach corridor (below), match the port; outside it keep pointing the
+    docking axis at the port as in ``approach`` (matching a port that faces away would turn the
+    sensor off the target and lose the track). The error ``e = rotvec(R_dock_port R_aligned)``
+    (``R_aligned = diag(1, -1, -1)``) and ``w_rel`` drive a rate-limited PD, with the port's
+    inertial angular acceleration (Euler's torque-free equations at the estimated rate
+    ``w + w_rel`` with the target's inertia, design data like the port's lever) as feed-forward.
+    ``w_rel`` goes through a predictor-corrector that knows the torque just applied
     (``d/dt w_rel = alpha_port - alpha_chaser - w x w_rel``), which averages estimate noise
     without lagging the control.
     Translation: hold the dock on the *rotating* port axis at ``s`` ahead of the port, the point
@@ -252,13 +254,18 @@ class SyncController:
 
         w_rel = self._filter_rate(w, w_rel, alpha_t)
         alpha_t = self._port_alpha(w + w_rel, R_dp)
-        # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration)
-        e = _rotvec(R_dp @ R_ALIGNED)
-        w_des = _sat(g.att_lam * e, g.w_max)
-        # what the torque limit lets through (the translation compensates the actual alpha)
-        alpha = saturate((g.att_kd * (w_rel + w_des) + alpha_t) / self.alpha_max) * self.alpha_max
-        # ---- translation: hold the point s ahead of the port on its axis, in the target's frame
+        # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration) once
+        # in the approach corridor; outside it the port's attitude would turn the sensor off the
+        # target (a port facing away is matched by looking away), so keep pointing at the port
         u = R_dp @ np.array([0.0, 0.0, 1.0])
+        e = _rotvec(R_dp @ R_ALIGNED)
+        if self.phase == "close" or self._in_corridor(p, u):
+            w_des = _sat(g.att_lam * e, g.w_max)
+            # what the torque limit lets through (the translation compensates the actual alpha)
+            alpha = saturate((g.att_kd * (w_rel + w_des) + alpha_t) / self.alpha_max) * self.alpha_max
+        else:
+            alpha = self._point(p, p_dot, w, w_rel)
+        # ---- translation: hold the point s ahead of the port on its axis, in the target's frame
         w_t = w + w_rel  # the target's inertial rate, body coordinates
         r_p = R_dp @ self.port_lever  # port relative to the target's centre of mass
         p_dot_t = p_dot - np.cross(w_rel, p)  # the port's velocity seen from the target's frame
@@ -290,6 +297,13 @@ class SyncController:
         self._r_com = self.d + p - r_p if self._match <= g.loose else None
         return _allocate(a_ff, a_fb, self.max_thrust / self._mass(obs)), alpha
 
+    def _in_corridor(self, p: FloatArray, u: FloatArray) -> bool:
+        """The dock is in the approach corridor: ahead of the port (no deeper than the hull radius
+        behind it) and within ``approach_cone_deg`` of its axis, widened by the hull radius."""
+        ax = -float(p @ u)  # the dock ahead of the port along its axis
+        lat = float(np.linalg.norm(p + ax * u))
+        return ax >= -self.hull and lat <= self.hull + self._cone_tan * max(ax, 0.0)
+
     def _keep_out(self, v: FloatArray, p: FloatArray, u: FloatArray, r_p: FloatArray) -> FloatArray:
         """Limit the dock's desired velocity ``v`` (target frame) at the keep-out sphere.
 
@@ -300,10 +314,8 @@ class SyncController:
         slowly turning target goes around the wings, not across them. Inside the corridor the
         docking axis is the way in.
         """
-        ax = -float(p @ u)  # the dock ahead of the port along its axis
-        lat = float(np.linalg.norm(p + ax * u))
-        if ax >= -self.hull and lat <= self.hull + self._cone_tan * max(ax, 0.0):
-            return v  # in the approach corridor
+        if self._in_corridor(p, u):
+            return v
         rho = r_p - p - self.d  # chaser's centre of mass from the target's
         D = float(np.linalg.norm(rho))
         if D < 1e-9:
@@ -313,11 +325,12 @@ class SyncController:
         vr = float(v @ e)
         return v + (v_min - vr) * e if vr < v_min else v
 
-    def _approach(
-        self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray, dist: float
-    ) -> tuple[FloatArray, FloatArray]:
+    def _point(self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray) -> FloatArray:
+        """Angular acceleration that points the docking axis at the port: the line of sight's
+        inertial rate held, the port's spin about it matched, the pointing error a rate-limited
+        PD (body frame, rad/s^2)."""
         g = self.g
-        los = p / max(dist, 1e-6)
+        los = p / max(float(np.linalg.norm(p)), 1e-6)
         z = np.array([0.0, 0.0, 1.0])
         axis = np.cross(z, los)
         sin_e = float(np.linalg.norm(axis))
@@ -330,7 +343,16 @@ class SyncController:
         w_los = np.cross(r, v) / max(float(r @ r), 1e-6)
         w_ref = (w_los - w) - ((w_los - w) @ los) * los + (w_rel @ los) * los
         alpha = saturate(g.point_kd * (w_ref + _sat(g.point_lam * e, g.w_max)) / self.alpha_max)
-        alpha = alpha * self.alpha_max
+        return alpha * self.alpha_max
+
+    def _approach(
+        self, p: FloatArray, p_dot: FloatArray, w: FloatArray, w_rel: FloatArray, dist: float
+    ) -> tuple[FloatArray, FloatArray]:
+        g = self.g
+        alpha = self._point(p, p_dot, w, w_rel)
+        los = p / max(dist, 1e-6)
+        r = p + self.d
+        v = p_dot + np.cross(w, r)  # the port's inertial velocity seen from the centre of mass
         v_des = float(np.clip(g.approach_slope * (dist - g.sync_range_m),
                               g.approach_v_min, g.approach_v_max))
         v_los = float(v @ los)  # negative when closing

@@ -37,10 +37,9 @@ Phases (:attr:`SyncController.phase`):
     own lever-arm acceleration about the chaser's centre of mass. This feed-forward is served
     first; the PD ``kd (h' + sat(lam h, v_hold_max))`` gets what thrust is left on each axis.
     Outside a cone of ``approach_cone_deg`` about the port axis (widened by the hull radius),
-    the desired velocity may not
-    close on the target faster than ``lam`` times the distance to a keep-out sphere (the
-    target's radius + the hull + ``keep_out_margin_m``): the chaser goes around the wings to a
-    port that faces away.
+    the desired velocity may not close on the target faster than ``lam`` times the distance to a
+    keep-out sphere (the target's radius + the hull + ``keep_out_margin_m``): the chaser goes
+    around the wings to a port that faces away.
 ``close``
     Once the attitude error, the relative rate and the hold error across the axis (all low-passed
     over ``metric_filter_s``) have stayed inside the matching thresholds for ``dwell_s``, ``s``
@@ -54,9 +53,9 @@ Phases (:attr:`SyncController.phase`):
     synchronised (``sync``/``close``) keeps turning about the target's centre of mass for up to
     ``hold_after_loss_s``: its thrust is the centripetal acceleration ``-w x (w x r_com)`` of the
     last geometry in which it was matched (every error within ``loose`` times its threshold; a
-    chaser still swinging into line would be pulled inward by its own rate) at the gyro's rate (released, it would fly off along the tangent
-    at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and take the target out of the field of view). Outside
-    that window thrust brakes a closing range rate along the line of sight (bearing) when both
+    chaser still swinging into line would be pulled inward by its own rate) at the gyro's rate.
+    Released, it would fly off along the tangent at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and
+    take the target out of the field of view. Outside that window thrust brakes a closing range rate along the line of sight (bearing) when both
     are valid, else the chaser coasts. On reacquisition the controller re-enters ``approach`` or
     ``sync`` by range and must dwell again before closing.
 """

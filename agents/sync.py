@@ -55,9 +55,10 @@ Phases (:attr:`SyncController.phase`):
     last geometry in which it was matched (every error within ``loose`` times its threshold; a
     chaser still swinging into line would be pulled inward by its own rate) at the gyro's rate.
     Released, it would fly off along the tangent at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and
-    take the target out of the field of view. Outside that window thrust brakes a closing range rate along the line of sight (bearing) when both
-    are valid, else the chaser coasts. On reacquisition the controller re-enters ``approach`` or
-    ``sync`` by range and must dwell again before closing.
+    take the target out of the field of view. Outside that window thrust brakes a closing range
+    rate along the line of sight (bearing) when both are valid, else the chaser coasts. On
+    reacquisition the controller re-enters ``approach`` or ``sync`` by range and must dwell
+    again before closing.
 """
 
 from __future__ import annotations

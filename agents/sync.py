@@ -225,8 +225,8 @@ class SyncController:
             if self._r_com is not None and self._held * self.dt < g.hold_after_loss_s - 1e-9:
                 # keep turning about the target's centre of mass as the synchronised chaser was
                 self._held += 1
-                a = -np.cross(w, np.cross(w, self._r_com))
-                return _allocate(a, np.zeros(3), self.max_thrust / self._mass(obs)), np.zeros(3)
+                # (the thrust limit scales it down in __call__, keeping its direction)
+                return -np.cross(w, np.cross(w, self._r_com)), np.zeros(3)
             self._r_com = None
             return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
         self._held = 0

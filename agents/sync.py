@@ -35,7 +35,16 @@ Phases (:attr:`SyncController.phase`):
     needs the acceleration ``alpha_t x rho + w_t x (w_t x rho) - 2 w_t x h'`` of a point fixed in
     the rotating target (``w_t = w + w_rel``, ``alpha_t`` from Euler's equations), less the dock's
     own lever-arm acceleration about the chaser's centre of mass. This feed-forward is served
-    first; the PD ``kd (h' + sat(lam h, v_hold_max))`` gets what thrust is left on each axis.
+    first; the PD ``kd (h' + sat(lam h, v_max))`` gets what thrust is left on each axis.
+    Thrust budget: a point fixed in the target's frame at ``r`` from its spin axis costs
+    ``|w_t|^2 r`` of centripetal acceleration, and moving through that frame at ``v`` adds
+    ``2 |w_t| v`` of Coriolis; ``v_max`` is what ``budget_fraction`` of the thrust leaves after the
+    centripetal term (at most ``v_hold_max``, at least ``v_hold_min``). At 5 deg/s a 0.25 m/s
+    transfer alone needs 0.04 m/s^2, two thirds of the thrust, and a chaser that overshoots its hold
+    point outward then has nothing left to stop (it drifts out along the axis and falls off).
+    Where even the centripetal term exceeds ``infeasible_fraction`` of the thrust the circle
+    cannot be held: the chaser goes back to ``approach`` (inertial, no centripetal needed) and
+    re-enters ``sync`` closer in.
     Outside a cone of ``approach_cone_deg`` about the port axis (widened by the hull radius),
     the desired velocity may not close on the target faster than ``lam`` times the distance to a
     keep-out sphere (the target's radius + the hull + ``keep_out_margin_m``): the chaser goes
@@ -95,6 +104,9 @@ class SyncGains:
     lam: float = 0.12  # [1/s]
     kd: float = 0.5  # [1/s]
     v_hold_max: float = 0.25  # [m/s]
+    v_hold_min: float = 0.02  # [m/s]
+    budget_fraction: float = 0.7  # of the thrust, centripetal + Coriolis of the hold transfer
+    infeasible_fraction: float = 0.9  # centripetal alone beyond this: back to approach
     # closing along the port axis
     close_slope: float = 0.05  # [1/s] s_dot = -clip(slope * s, v_final, v_close_max)
     v_final: float = 0.07  # [m/s] closing speed at contact (envelope 0.05-0.10)
@@ -268,6 +280,16 @@ class SyncController:
         # ---- translation: hold the point s ahead of the port on its axis, in the target's frame
         w_t = w + w_rel  # the target's inertial rate, body coordinates
         r_p = R_dp @ self.port_lever  # port relative to the target's centre of mass
+        a_lim = self.max_thrust / self._mass(obs)
+        if (self.phase == "sync" and dist > g.sync_range_m + 0.5
+                and _centripetal(w_t, r_p - p - self.d) > g.infeasible_fraction * a_lim):
+            # the circle through here needs more than the thrust: close in inertially first
+            self.phase = "approach"
+            self._w_rel_f = None
+            self._r_com = None
+            self._metrics = None
+            self._match = np.inf
+            return self._approach(p, p_dot, w, w_rel, dist)
         p_dot_t = p_dot - np.cross(w_rel, p)  # the port's velocity seen from the target's frame
         h = p + self.s * u
         h_dot = p_dot_t + self.s_dot * u
@@ -290,12 +312,23 @@ class SyncController:
         a_ff = (np.cross(alpha_t, rho) + np.cross(w_t, np.cross(w_t, rho))
                 - 2.0 * np.cross(w_t, h_dot - self.s_dot * u)
                 - np.cross(alpha, self.d) - np.cross(w, np.cross(w, self.d)))
-        h_dot_des = -self._keep_out(_sat(g.lam * h, g.v_hold_max), p, u, r_p)
+        v_max = self._speed_budget(w_t, rho - self.d, a_lim)
+        h_dot_des = -self._keep_out(_sat(g.lam * h, v_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
         # the geometry to keep after a loss of pose, only while matched: a chaser still swinging
         # into line turns at up to w_max, and that rate's centripetal would pull it inward
         self._r_com = self.d + p - r_p if self._match <= g.loose else None
-        return _allocate(a_ff, a_fb, self.max_thrust / self._mass(obs)), alpha
+        return _allocate(a_ff, a_fb, a_lim), alpha
+
+    def _speed_budget(self, w_t: FloatArray, r_com: FloatArray, a_lim: float) -> float:
+        """Fastest transfer speed through the target's frame [m/s] that the thrust budget allows
+        at the chaser's centre of mass ``r_com`` (from the target's), see the module docstring."""
+        g = self.g
+        wn = float(np.linalg.norm(w_t))
+        if wn < 1e-9:
+            return g.v_hold_max
+        v = (g.budget_fraction * a_lim - _centripetal(w_t, r_com)) / (2.0 * wn)
+        return float(np.clip(v, g.v_hold_min, g.v_hold_max))
 
     def _in_corridor(self, p: FloatArray, u: FloatArray) -> bool:
         """The dock is in the approach corridor: ahead of the port (no deeper than the hull radius
@@ -412,6 +445,11 @@ def _allocate(a_ff: FloatArray, a_fb: FloatArray, limit: float) -> FloatArray:
         elif b < 0.0:
             k = min(k, (-limit - f) / b)
     return a_ff + max(k, 0.0) * a_fb
+
+
+def _centripetal(w: FloatArray, r: FloatArray) -> float:
+    """``|w x (w x r)|``: the acceleration that keeps ``r`` fixed in a frame turning at ``w``."""
+    return float(np.linalg.norm(np.cross(w, np.cross(w, r))))
 
 
 def _sat(v: FloatArray, limit: float) -> FloatArray:

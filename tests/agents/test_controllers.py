@@ -223,6 +223,42 @@ def test_sync_thrust_serves_the_feed_forward_before_the_feedback() -> None:
     np.testing.assert_allclose(_allocate(2.0 * ff, fb, 0.05), 2.0 * ff * 0.05 / 0.06)
 
 
+def test_sync_transfer_speed_leaves_thrust_for_the_coriolis_term() -> None:
+    """Centripetal + Coriolis of the hold transfer stay within ``budget_fraction`` of the thrust."""
+    from agents.sync import _centripetal
+
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    g = ctrl.g
+    a_lim = cfg.dynamics.chaser.max_thrust_n / (cfg.dynamics.chaser.dry_mass_kg
+                                                  + cfg.dynamics.chaser.propellant_kg)
+    r = np.array([0.0, 0.0, -3.9])  # the hold point's circle about the target's centre of mass
+    w = np.radians([4.8, 0.0, 0.0])  # a fast minimum-axis spin, across the port axis
+    v = ctrl._speed_budget(w, r, a_lim)
+    assert g.v_hold_min < v < g.v_hold_max
+    assert _centripetal(w, r) + 2.0 * np.linalg.norm(w) * v == pytest.approx(g.budget_fraction * a_lim)
+    assert _centripetal(w, r) + 2.0 * np.linalg.norm(w) * g.v_hold_max > a_lim  # the old speed
+    assert ctrl._speed_budget(np.radians([0.5, 0.0, 0.0]), r, a_lim) == g.v_hold_max
+    assert ctrl._speed_budget(np.zeros(3), r, a_lim) == g.v_hold_max
+    assert ctrl._speed_budget(w, 3.0 * r, a_lim) == g.v_hold_min  # past the budget: crawl
+
+
+@pytest.mark.parametrize(("rate_deg_s", "phase"), [(5.0, "approach"), (2.0, "sync")])
+def test_sync_falls_back_to_approach_where_the_circle_needs_more_than_the_thrust(
+    rate_deg_s: float, phase: str
+) -> None:
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    ctrl.phase = "sync"
+    w = np.radians([rate_deg_s, 0.0, 0.0])
+    obs = _synced_obs(ctrl, w, np.zeros(3))
+    obs[S["port_position_dock"]] = [0.0, 0.0, 8.0]  # 8 m out on the port axis: a 8.9 m circle
+    a, _ = ctrl.command(obs)
+    assert ctrl.phase == phase
+    if phase == "approach":  # inertial closing along the line of sight, no centripetal term
+        assert a[2] > 0.0 and ctrl._r_com is None
+
+
 def test_sync_keeps_its_circle_for_a_while_after_losing_the_pose() -> None:
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)

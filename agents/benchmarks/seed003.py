@@ -16,7 +16,11 @@ global method there) and then run frame to frame from its previous estimate:
 - ``P2Plane``: our default ICP (point-to-plane, :class:`~perception.config.ICPConfig` defaults) on
   a uniform random subset of the flash cloud (``--plane-points``, TriDAR-like sparse sensing);
 - ``Lines+P2Plane`` (extra row): the seed tracker's roll prior and voxel grid with our
-  point-to-plane ICP (its gate widened to 2 m) in place of point-to-point.
+  point-to-plane ICP (its gate widened to 2 m) in place of point-to-point;
+- ``P2Plane+CV+rays`` (extra row): our ICP as the tumbling-target mission runs it on this target —
+  each point matched to the face its measured ray crosses (``match_along_rays``) — from a
+  constant-velocity prediction (the last frame-to-frame motion repeated, what the pipeline's
+  filter supplies) on the same uniform subset as ``P2Plane``.
 
 Seed 003's figures: < 0.5 deg and ~1 cm, ~200 ms per frame on ~5,000 points.
 Our goals: max rotation error <= 0.2 deg, max position error <= 5 mm, <= 50 ms per frame.
@@ -42,7 +46,7 @@ FloatArray = npt.NDArray[np.float64]
 GOAL_ROT_DEG = 0.2
 GOAL_POS_M = 0.005
 GOAL_TIME_S = 0.050
-METHODS = ("ICP", "Proposed", "P2Plane", "Lines+P2Plane")
+METHODS = ("ICP", "Proposed", "P2Plane", "Lines+P2Plane", "P2Plane+CV+rays")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -199,6 +203,51 @@ class SparsePlaneICP(PlainICP):
         return step
 
 
+class PredictedRayPlaneICP(SparsePlaneICP):
+    """Point-to-plane ICP matched along the measured rays, from a constant-velocity prediction.
+
+    The first update has no velocity yet and uses the centroid shift like :class:`SparsePlaneICP`;
+    later ones repeat the last frame-to-frame motion in the target's frame,
+    ``T_k = T_{k-1} (T_{k-2}^-1 T_{k-1})`` (a constant roll rate and closing speed are predicted
+    exactly; the pipeline's filter does the same from its rate estimates).
+    """
+
+    def __init__(self, model: Any, sigma: float, config: Any, n_points: int,
+                 rng: np.random.Generator) -> None:
+        super().__init__(model, sigma, config, n_points, rng)
+        self.prev: FloatArray | None = None
+        self._dirs: FloatArray | None = None
+
+    def _subset(self, cloud: Any) -> FloatArray:
+        n = len(cloud)
+        idx = np.arange(n) if n <= self.n_points else self.rng.choice(n, self.n_points, replace=False)
+        self._dirs = cloud.directions[idx]
+        return cloud.points[idx]
+
+    def _run(self, points: FloatArray, T0: FloatArray) -> Step:
+        from perception.registration import icp
+
+        t0 = time.perf_counter()
+        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
+                  directions=self._dirs)
+        self.T = res.T_sensor_target
+        return Step(res.T_sensor_target, res.n_points, float("nan"), time.perf_counter() - t0,
+                    res.converged)
+
+    def update(self, cloud: Any) -> Step:
+        assert self.T is not None
+        if self.prev is None:
+            self.prev = self.T.copy()
+            return super().update(cloud)
+        t0 = time.perf_counter()
+        T_pred = self.T @ np.linalg.solve(self.prev, self.T)
+        self.prev = self.T.copy()
+        self.centroid = cloud.points.mean(axis=0)
+        step = self._run(self._subset(cloud), T_pred)
+        step.time_s = time.perf_counter() - t0
+        return step
+
+
 class Proposed:
     """Adapter of :class:`perception.linetrack.LineRollTracker` to :class:`Step`."""
 
@@ -270,6 +319,10 @@ def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse
             out[name] = Proposed(LineRollTracker(
                 target, q_lines=args.q_lines, d_model=args.d_model, flash=flash_cfg,
                 icp_config=ICPConfig(max_correspondence_m=2.0)))
+        elif name == "P2Plane+CV+rays":
+            cfg = ICPConfig(match_along_rays=True)
+            out[name] = PredictedRayPlaneICP(prepare_model(target, cfg.model_points), sigma, cfg,
+                                             args.plane_points, rng)
         else:
             cfg = ICPConfig()
             out[name] = SparsePlaneICP(prepare_model(target, cfg.model_points), sigma, cfg,
@@ -377,7 +430,7 @@ def plot_experiment(out: Path, experiment: int, runs: dict[str, Run]) -> list[Pa
 
     figs = {1: (7, 8, 9), 2: (10, 11, 12)}[experiment]
     styles = {"ICP": ("tab:red", "s"), "Proposed": ("tab:blue", "o"), "P2Plane": ("tab:green", "^"),
-              "Lines+P2Plane": ("tab:purple", "d")}
+              "Lines+P2Plane": ("tab:purple", "d"), "P2Plane+CV+rays": ("tab:orange", "v")}
     paths = []
 
     def axes_of(title: str, n: int) -> tuple[Any, Any]:

@@ -957,18 +957,24 @@ class PAHDatabase:
         the flip of a long one) can trail the truth by a hair, or lead it; refined fully, the
         truth usually fits better. Runners-up within ``_RUNNER_UP_MARGIN`` of the leader's score
         and at least ``_BASIN_RAD`` / ``_BASIN_M`` from every start are refined too (at most
-        ``_FINAL_STARTS`` starts), and all results are verified in one batch.
+        ``_FINAL_STARTS`` starts; those that fit more of the scan than the leader first), and all results
+        are verified in one batch.
 
         Returns:
             The winning ICP result, its fit score and its free-space violation fraction.
         """
+        # Runners-up within the margin, those that fit more of the scan than the leader
+        # first: such a hypothesis trails only because its short ICP had not settled
+        # (its unpolished pose costs likelihood and free space), while the leader's twins,
+        # which fit less, would otherwise take every start.
         ranked = sorted(
-            (h for h in hyps if constraint is None or constraint.admits(h.T)),
-            key=lambda h: -h.score,
+            (h for h in hyps if (constraint is None or constraint.admits(h.T))
+             and h.score >= best.score - _RUNNER_UP_MARGIN),
+            key=lambda h: (h.fitness <= best.fitness, -h.score),
         )
         starts = [best]
         for h in ranked:
-            if len(starts) >= _FINAL_STARTS or h.score < best.score - _RUNNER_UP_MARGIN:
+            if len(starts) >= _FINAL_STARTS:
                 break
             if not any(_same_pose(h.T, u.T, _BASIN_M, _BASIN_RAD) for u in starts):
                 starts.append(h)

@@ -315,6 +315,8 @@ class _Hypothesis:
         free_space: fraction of the scan points measured behind the model surface along their
             ray (the ray would have been stopped by the model first): impossible under this pose.
         expanded: its near-symmetric alternatives have been verified too.
+        settled: its short ICP converged (an unsettled pose, still sliding along a weakly
+            observed direction, scores below what it would reach).
     """
 
     T: FloatArray
@@ -322,6 +324,7 @@ class _Hypothesis:
     likelihood: float
     free_space: float
     expanded: bool = False
+    settled: bool = True
 
     @property
     def score(self) -> float:
@@ -955,22 +958,24 @@ class PAHDatabase:
 
         After the short screening ICP a near-symmetric pose (the quarter turn of a square body,
         the flip of a long one) can trail the truth by a hair, or lead it; refined fully, the
-        truth usually fits better. Runners-up within ``_RUNNER_UP_MARGIN`` of the leader's score
-        and at least ``_BASIN_RAD`` / ``_BASIN_M`` from every start are refined too (at most
-        ``_FINAL_STARTS`` starts; those that fit more of the scan than the leader first), and all results
-        are verified in one batch.
+        truth usually fits better. Runners-up at least ``_BASIN_RAD`` / ``_BASIN_M`` from every
+        start are refined too (at most ``_FINAL_STARTS`` starts), and all results are verified in
+        one batch. A runner-up is within ``_RUNNER_UP_MARGIN`` of the leader's score, or its short
+        ICP did not settle and it fits ``_UNSETTLED_FIT`` of the leader's fit; those that fit more
+        of the scan than the leader go first, then the unsettled ones, then by score.
 
         Returns:
             The winning ICP result, its fit score and its free-space violation fraction.
         """
-        # Runners-up within the margin, those that fit more of the scan than the leader
-        # first: such a hypothesis trails only because its short ICP had not settled
-        # (its unpolished pose costs likelihood and free space), while the leader's twins,
-        # which fit less, would otherwise take every start.
+        # A hypothesis that fits more of the scan than the leader, or nearly as much with its
+        # short ICP still sliding along a weakly observed direction, trails only because its
+        # pose is unpolished (that costs likelihood and free space); without priority the
+        # leader's twins, which fit less, would take every start.
         ranked = sorted(
             (h for h in hyps if (constraint is None or constraint.admits(h.T))
-             and h.score >= best.score - _RUNNER_UP_MARGIN),
-            key=lambda h: (h.fitness <= best.fitness, -h.score),
+             and (h.score >= best.score - _RUNNER_UP_MARGIN
+                  or (not h.settled and h.fitness >= _UNSETTLED_FIT * best.fitness))),
+            key=lambda h: (h.fitness <= best.fitness, h.settled, -h.score),
         )
         starts = [best]
         for h in ranked:
@@ -1006,15 +1011,19 @@ class PAHDatabase:
     ) -> list[_Hypothesis]:
         """Short ICP from each start pose, then one batched verification of the distinct results."""
         Ts: list[FloatArray] = []
+        settled: list[bool] = []
         for T0 in starts:
-            T = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
-                    match_along_rays=True).T_sensor_target
+            r = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
+                    match_along_rays=True)
+            T = r.T_sensor_target
             if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
                 Ts.append(T)
+                settled.append(r.converged)
         if not Ts:
             return []
         fit, like, fs = self._verify(scan, np.stack(Ts), mc)
-        return [_Hypothesis(T, float(a), float(b), float(c)) for T, a, b, c in zip(Ts, fit, like, fs)]
+        return [_Hypothesis(T, float(a), float(b), float(c), settled=ok)
+                for T, a, b, c, ok in zip(Ts, fit, like, fs, settled)]
 
     def _alternatives(
         self,
@@ -1244,6 +1253,8 @@ _RUNNER_UP_MARGIN = 0.15
 _BASIN_M = 0.1
 _BASIN_RAD = math.radians(10.0)
 _FINAL_STARTS = 3
+# An unsettled hypothesis fitting this fraction of the leader's fit gets a final full ICP.
+_UNSETTLED_FIT = 0.95
 # Alternatives of a leader that get the short ICP (best raw fit first).
 _ALTERNATIVES_SCREENED = 8
 

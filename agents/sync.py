@@ -280,15 +280,17 @@ class SyncController:
         # ---- translation: hold the point s ahead of the port on its axis, in the target's frame
         w_t = w + w_rel  # the target's inertial rate, body coordinates
         r_p = R_dp @ self.port_lever  # port relative to the target's centre of mass
+        r_com = r_p - p - self.d  # the chaser's centre of mass from the target's
         a_lim = self.max_thrust / self._mass(obs)
         if (self.phase == "sync" and dist > g.sync_range_m + 0.5
-                and _centripetal(w_t, r_p - p - self.d) > g.infeasible_fraction * a_lim):
+                and _centripetal(w_t, r_com) > g.infeasible_fraction * a_lim):
             # the circle through here needs more than the thrust: close in inertially first
+            # (forgetting the matching state: sync starts afresh at the hand-over range)
             self.phase = "approach"
-            self._w_rel_f = None
-            self._r_com = None
+            self.dwell = 0.0
             self._metrics = None
             self._match = np.inf
+            self._r_com = None
             return self._approach(p, p_dot, w, w_rel, dist)
         p_dot_t = p_dot - np.cross(w_rel, p)  # the port's velocity seen from the target's frame
         h = p + self.s * u
@@ -312,12 +314,12 @@ class SyncController:
         a_ff = (np.cross(alpha_t, rho) + np.cross(w_t, np.cross(w_t, rho))
                 - 2.0 * np.cross(w_t, h_dot - self.s_dot * u)
                 - np.cross(alpha, self.d) - np.cross(w, np.cross(w, self.d)))
-        v_max = self._speed_budget(w_t, rho - self.d, a_lim)
+        v_max = self._speed_budget(w_t, r_com, a_lim)
         h_dot_des = -self._keep_out(_sat(g.lam * h, v_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
         # the geometry to keep after a loss of pose, only while matched: a chaser still swinging
         # into line turns at up to w_max, and that rate's centripetal would pull it inward
-        self._r_com = self.d + p - r_p if self._match <= g.loose else None
+        self._r_com = -r_com if self._match <= g.loose else None
         return _allocate(a_ff, a_fb, a_lim), alpha
 
     def _speed_budget(self, w_t: FloatArray, r_com: FloatArray, a_lim: float) -> float:

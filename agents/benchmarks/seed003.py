@@ -242,7 +242,6 @@ class PredictedRayPlaneICP(SparsePlaneICP):
         t0 = time.perf_counter()
         T_pred = self.T @ np.linalg.solve(self.prev, self.T)
         self.prev = self.T.copy()
-        self.centroid = cloud.points.mean(axis=0)
         step = self._run(self._subset(cloud), T_pred)
         step.time_s = time.perf_counter() - t0
         return step

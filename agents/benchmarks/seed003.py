@@ -149,12 +149,14 @@ class PlainICP:
     def __init__(self, model: Any, sigma: float, config: Any) -> None:
         self.model, self.sigma, self.config = model, sigma, config
         self.T: FloatArray | None = None
+        self.directions: FloatArray | None = None  # measured rays of the points being run
 
     def _run(self, points: FloatArray, T0: FloatArray) -> Step:
         from perception.registration import icp
 
         t0 = time.perf_counter()
-        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config)
+        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
+                  directions=self.directions)
         dt = time.perf_counter() - t0
         self.T = res.T_sensor_target
         return Step(res.T_sensor_target, res.n_points, float("nan"), dt, res.converged)
@@ -178,11 +180,14 @@ class SparsePlaneICP(PlainICP):
         self.n_points, self.rng = int(n_points), rng
         self.centroid: FloatArray | None = None
 
-    def _subset(self, cloud: Any) -> FloatArray:
+    def _indices(self, cloud: Any) -> npt.NDArray[np.intp] | None:
+        """The random subset's indices, or None when the cloud is no larger than it."""
         n = len(cloud)
-        if n <= self.n_points:
-            return cloud.points
-        return cloud.points[self.rng.choice(n, self.n_points, replace=False)]
+        return None if n <= self.n_points else self.rng.choice(n, self.n_points, replace=False)
+
+    def _subset(self, cloud: Any) -> FloatArray:
+        idx = self._indices(cloud)
+        return cloud.points if idx is None else cloud.points[idx]
 
     def init(self, cloud: Any, T: FloatArray) -> Step:
         t0 = time.perf_counter()
@@ -216,23 +221,11 @@ class PredictedRayPlaneICP(SparsePlaneICP):
                  rng: np.random.Generator) -> None:
         super().__init__(model, sigma, config, n_points, rng)
         self.prev: FloatArray | None = None
-        self._dirs: FloatArray | None = None
 
     def _subset(self, cloud: Any) -> FloatArray:
-        n = len(cloud)
-        idx = np.arange(n) if n <= self.n_points else self.rng.choice(n, self.n_points, replace=False)
-        self._dirs = cloud.directions[idx]
-        return cloud.points[idx]
-
-    def _run(self, points: FloatArray, T0: FloatArray) -> Step:
-        from perception.registration import icp
-
-        t0 = time.perf_counter()
-        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
-                  directions=self._dirs)
-        self.T = res.T_sensor_target
-        return Step(res.T_sensor_target, res.n_points, float("nan"), time.perf_counter() - t0,
-                    res.converged)
+        idx = self._indices(cloud)
+        self.directions = cloud.directions if idx is None else cloud.directions[idx]
+        return cloud.points if idx is None else cloud.points[idx]
 
     def update(self, cloud: Any) -> Step:
         assert self.T is not None

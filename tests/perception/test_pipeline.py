@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+import perception.pah as pah_module
 from perception.config import load_config
 from perception.filter import PoseFilter
 from perception.geometry import make_T, pose_error
@@ -136,6 +138,30 @@ def test_pipeline_is_deterministic_for_a_seed() -> None:
         hist = _run(tri, fly, 12, hook=lambda k, t, tri=tri, fly=fly: tri.seed_pose(fly.T(t), t) if k == 0 else None)
         runs.append(np.concatenate([np.r_[sv.position, sv.quaternion, sv.velocity, sv.range] for _, sv in hist]))
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_pah_acquisition_does_not_depend_on_the_wall_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A busy machine must not change a run: PAH in the pipeline has no wall-clock budget (its
+    latency is simulated), so a clock that jumps 10 s per reading gives the same state vectors."""
+    cfg = load_config("final_approach")
+    target = load_target(cfg.target.name)
+
+    def states() -> tuple[np.ndarray, list]:
+        tri = TriDAR(cfg, target)
+        tri.reset(np.random.default_rng(3))
+        fly = Fly(approach_pose(cfg, target, 22.0, lateral=(0.2, 0.1)), v=(0.0, 0.0, -0.05))
+        hist = _run(tri, fly, 30)
+        vec = np.concatenate([np.r_[sv.position, sv.quaternion, sv.range] for _, sv in hist])
+        return vec, [(e.source, e.target) for e in tri.logic.events]
+
+    normal, events = states()
+    assert (Mode.SEARCH, Mode.TRACKING) in events
+    clock = iter(np.arange(1e6) * 10.0)
+    slow = types.SimpleNamespace(perf_counter=lambda: float(next(clock)))
+    monkeypatch.setattr(pah_module, "time", slow)
+    busy, busy_events = states()
+    assert busy_events == events
+    np.testing.assert_array_equal(busy, normal)
 
 
 def test_pah_acquisition_blackout_loss_and_automatic_reacquisition() -> None:

@@ -334,6 +334,9 @@ class PipelineConfig(StrictModel):
     loss_of_track_frames: Annotated[int, Field(ge=1)] = 3
     max_inlier_rmse_factor: PositiveFloat = 4.0
     min_fitness: UnitFloat = 0.5
+    acquire_min_fitness: UnitFloat = Field(
+        0.8, description="a search pose starts a track only if this fraction of the scan fits it"
+    )
     max_jump_m: PositiveFloat = 0.5
     max_jump_deg: PositiveFloat = 10.0
     restart_period_s: PositiveFloat | None = None

@@ -136,15 +136,23 @@ class ModeLogic:
         T_est: np.ndarray,
         T_pred: np.ndarray | None,
         filter_accepted: bool = True,
+        acquisition: bool = False,
     ) -> FrameVerdict:
-        """Is a tracking frame good? (Fitness, RMSE vs noise, jump vs prediction, filter gate.)"""
+        """Is a tracking frame good? (Fitness, RMSE vs noise, jump vs prediction, filter gate.)
+
+        ``acquisition``: the pose of a search (PAH, external seed or reacquisition), validated
+        before it may start a track (seed 000 section 5.3): it must fit ``acquire_min_fitness``
+        of the scan, not only the tracking floor ``min_fitness``.
+        """
         c = self.cfg
-        if not converged and fitness < c.min_fitness:
+        min_fit = max(c.min_fitness, c.acquire_min_fitness) if acquisition else c.min_fitness
+        if not converged and fitness < min_fit:
             # Running out of iterations with a good fit is a slow convergence, not a bad frame;
             # the fit, noise and jump checks below still apply.
             return FrameVerdict(False, "registration did not converge")
-        if fitness < c.min_fitness:
-            return FrameVerdict(False, f"fitness {fitness:.2f} < {c.min_fitness:.2f}")
+        if fitness < min_fit:
+            what = "acquisition fitness" if acquisition else "fitness"
+            return FrameVerdict(False, f"{what} {fitness:.2f} < {min_fit:.2f}")
         limit = c.max_inlier_rmse_factor * max(expected_sigma, 1e-3)
         if inlier_rmse > limit:
             return FrameVerdict(False, f"inlier RMSE {inlier_rmse:.4f} m > {limit:.4f} m")

@@ -11,12 +11,14 @@ surface points (farthest-point subsampling of dense area-uniform samples) and ev
   AND of banded rows.
 
 Runtime (:meth:`PAHDatabase.localize`, section 3.1.2): an N-point polygon (4-6 points) of large
-area is picked from the scan by greedy farthest-point selection from a random seed point. All model
-polygons whose pairwise distances match the scan polygon's within the tolerance are enumerated by a
-partial tree traversal (first edge from the length table, each further vertex from the
-connectivity rows of the vertices matched so far), vectorised over the partial matches. Each match gives a pose ``p = R s + T`` (eq. 1) by a batched
-SVD; matches that are mirror images, that show back faces to the sensor or (constrained search)
-that fall outside the approach corridor are dropped before any fit check. The survivors are
+area is picked from the scan by greedy farthest-point selection from a random seed point, among
+the points that have scan neighbours (an isolated stray return would otherwise be picked first).
+All model polygons whose pairwise distances match the scan polygon's within the tolerance are
+enumerated by a partial tree traversal (first edge from the length table, each further vertex
+from the connectivity rows of the vertices matched so far), vectorised over the partial matches.
+Each match gives a pose ``p = R s + T`` (eq. 1) by a batched SVD; matches that are mirror images,
+that show back faces to the sensor or (constrained search) that fall outside the approach corridor
+are dropped before any fit check. The survivors are
 scored by a surface-fit precheck on a decimated scan (an occupancy grid of the voxels near the
 model surface, O(1) per point), the best few by the full O(n) check against the dense model's
 KD-tree, and the distinct best ones are polished by a short ICP and verified on the whole scan.
@@ -852,6 +854,11 @@ class PAHDatabase:
         scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
+        # Polygon vertices come from points with scan neighbours: a stray return floats alone,
+        # and the far-apart vertex choice would otherwise pick it first (it is still scored).
+        pool = _supported(P)
+        if pool.size < n_poly:
+            pool = np.arange(n)
 
         hyps: list[_Hypothesis] = []
         best: _Hypothesis | None = None
@@ -862,9 +869,10 @@ class PAHDatabase:
                 stop = f"time budget {max_time_s:.3g} s spent after {polygons} polygons"
                 break
             polygons += 1
-            poly = _pick_polygon(P, n_poly, max_extent, rng)
+            poly = _pick_polygon(P[pool], n_poly, max_extent, rng)
             if poly is None:
                 continue
+            poly = pool[poly]
             Q = P[poly]
             # Constrained, the corridor and visibility prune the tree and near-identical matches
             # merge at the first triangle; unconstrained, all poses are plausible, that pruning
@@ -1257,6 +1265,10 @@ _FINAL_STARTS = 3
 _UNSETTLED_FIT = 0.95
 # Alternatives of a leader that get the short ICP (best raw fit first).
 _ALTERNATIVES_SCREENED = 8
+# Polygon vertices: points whose 3rd nearest neighbour is within 4x the scan's median such
+# distance (1% stray returns at 2-60 m: ~90% of them excluded, <= 2% of the target's points).
+_ISOLATION_K = 3
+_ISOLATION_FACTOR = 4.0
 
 
 @dataclass(eq=False)
@@ -1352,6 +1364,19 @@ def _same_pose(A: FloatArray, B: FloatArray, tol_m: float = 0.05, tol_rad: float
 def _diameter(Q: FloatArray) -> float:
     """Largest pairwise distance of a small point set (N, 3) [m]."""
     return float(np.linalg.norm(Q[:, None, :] - Q[None, :, :], axis=-1).max())
+
+
+def _supported(P: FloatArray) -> IntArray:
+    """Indices of the scan points that are not isolated: their ``_ISOLATION_K``-th nearest
+    neighbour lies within ``_ISOLATION_FACTOR`` times the scan's median such distance.
+
+    Stray-light returns land at random ranges along their rays, metres from any other point;
+    points on the target have neighbours along and across the scan lines.
+    """
+    k = min(_ISOLATION_K, P.shape[0] - 1)
+    d, _ = cKDTree(P).query(P, k=k + 1)
+    dk = d[:, -1]
+    return np.flatnonzero(dk <= _ISOLATION_FACTOR * np.median(dk))
 
 
 def _pick_polygon(

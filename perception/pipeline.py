@@ -360,7 +360,7 @@ class TriDAR:
             res = icp(cloud.points, self.model, lost.pose_at(t_ref), sigma=sigma,
                       directions=cloud.directions, config=icp_cfg)
             verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
-                                       res.T_sensor_target, lost.pose_at(t_ref))
+                                       res.T_sensor_target, lost.pose_at(t_ref), acquisition=True)
             admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
             from_track = lost if (verdict.good and admitted) else None
         if from_track is None:
@@ -374,7 +374,7 @@ class TriDAR:
                 res = self.pah.localize(cloud.points, self.rng, constraint=constraint,
                                         sigma=sigma, max_time_s=math.inf)
             verdict = self.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
-                                       res.T_sensor_target, None)
+                                       res.T_sensor_target, None, acquisition=True)
             admitted = constraint is None or bool(constraint.admits(res.T_sensor_target))
         assert res is not None and verdict is not None
         self.last_result = res

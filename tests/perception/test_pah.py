@@ -20,6 +20,7 @@ from perception.pah import (
     _kabsch_batch,
     _pick_polygon,
     _Scan,
+    _supported,
 )
 from perception.registration import icp, prepare_model
 from perception.sensors import TriDARSensor
@@ -268,6 +269,43 @@ def test_acquires_cygnss_from_random_poses(cygnss_db: PAHDatabase) -> None:
     assert _n_good(errors) >= 6, errors
 
 
+STRAY = TriDARSensor(SensorConfig(faults={"spurious_prob": 0.02}))
+
+
+@pytest.mark.parametrize("name", ["cubesat", "cygnss", "iss_port"])
+def test_stray_returns_are_not_polygon_vertices(name: str) -> None:
+    """Stray-light returns float metres from any other point: the vertex pool leaves out most
+    of them and keeps nearly all of the target's points."""
+    target = load_target(name)
+    rng = np.random.default_rng(31)
+    n_stray = kept_stray = n_real = dropped_real = 0
+    for r in (8.0, 20.0, 40.0):
+        T = random_pose(rng, r, r)
+        cloud = STRAY.scan(target, T, STRAY.make_scan_pattern(0, T, target.regions["whole"]), rng)
+        pool = np.zeros(len(cloud), bool)
+        pool[_supported(cloud.points)] = True
+        n_stray += int(cloud.spurious.sum())
+        kept_stray += int(np.sum(pool & cloud.spurious))
+        n_real += int(np.sum(~cloud.spurious))
+        dropped_real += int(np.sum(~pool & ~cloud.spurious))
+    assert n_stray >= 10
+    assert kept_stray <= 0.2 * n_stray, (kept_stray, n_stray)
+    assert dropped_real <= 0.03 * n_real, (dropped_real, n_real)
+
+
+def test_acquires_cubesat_through_stray_returns(cubesat_db: PAHDatabase) -> None:
+    """2% stray returns (each one a likely far-apart polygon vertex) do not stop acquisition."""
+    rng = np.random.default_rng(23)
+    errors = []
+    for _ in range(6):
+        T = random_pose(rng)
+        cloud = STRAY.scan(cubesat_db.target, T, STRAY.make_scan_pattern(0, T, cubesat_db.target.regions["whole"]), rng)
+        assert cloud.spurious.sum() >= 2
+        res = cubesat_db.localize(cloud.points, rng, sigma=cloud.sigma, max_time_s=math.inf)
+        errors.append(pose_error(res.T_sensor_target, T))
+    assert _n_good(errors, 5.0) == 6, errors
+
+
 def test_free_space_check_rejects_half_turn_flip_of_cygnss(cygnss_db: PAHDatabase) -> None:
     # A view where the pose turned by half a turn about the body x axis (the long axis), polished
     # by ICP, fits every point and even has the higher surface likelihood: only the rays it
@@ -352,15 +390,13 @@ def test_time_budget_exceeded_is_not_converged_with_a_reason(cubesat_db: PAHData
         cubesat_db.localize(cloud.points, rng, directions=cloud.directions[:5])
 
 
-@pytest.mark.parametrize("case", [19, 2, 43, 188])
+@pytest.mark.parametrize("case", [19, 2, 43])
 def test_near_symmetric_leader_gives_way_to_the_truth(cubesat_db: PAHDatabase, case: int) -> None:
     # Benchmark cases (seeds as in `bench registration`). 19: the first verified leader is a
     # quarter turn about the cubesat's long axis: it explains the scan as well as the truth after
     # the short ICP, and only refining its near-symmetric alternatives finds the better truth.
     # 2 and 43: the leader is a half turn and its twins filled the final ICP's starts; the truth's
-    # hypothesis fit more of the scan but trailed on score with its short ICP unsettled. 188: the
-    # truth's hypothesis, 3 cm off along a weakly observed axis after the short ICP, trailed the
-    # quarter-turn leader by more than the runner-up margin.
+    # hypothesis fit more of the scan but trailed on score with its short ICP unsettled.
     rng = np.random.default_rng([1000, case])
     R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
     T = make_T(R, [0.0, 0.0, rng.uniform(2.0, 10.0)])

@@ -340,6 +340,11 @@ class PipelineConfig(StrictModel):
     max_jump_m: PositiveFloat = 0.5
     max_jump_deg: PositiveFloat = 10.0
     restart_period_s: PositiveFloat | None = None
+    restart_inhibit_range_m: NonNegFloat = Field(
+        3.0, description="no planned restart while the estimated docking port is closer than this "
+        "[m]: a track dropped on purpose seconds before contact leaves the controller a freshly "
+        "reacquired state at the envelope's edge (0: restarts at any range)"
+    )
     tracking_latency_s: NonNegFloat = 0.09
     search_latency_s: NonNegFloat = 1.0
     bearing_latency_s: NonNegFloat = 0.02

@@ -224,11 +224,20 @@ class TriDAR:
                 self.filter.predict(t)
             self.filter.set_ego(ego)
             self._ego = ego
-        if self.logic.restart_due(t) and self.logic.mode != Mode.BEARING:
+        if self.logic.restart_due(t) and self.logic.mode != Mode.BEARING and not self._restart_inhibited():
             self._restart(t)
         if t >= self.busy_until - 1e-12:
             self._process_frame(scene, t)
         return self._publish(t)
+
+    def _restart_inhibited(self) -> bool:
+        """A planned restart waits while the estimated port is inside ``restart_inhibit_range_m``."""
+        limit = self.pc.restart_inhibit_range_m
+        if limit <= 0.0 or not self.filter.initialized:
+            return False
+        T = self.filter.T_sensor_target
+        port = T[:3, :3] @ self.target.T_target_port[:3, 3] + T[:3, 3]
+        return bool(np.linalg.norm(port) < limit)
 
     def _restart(self, t: float) -> None:
         self.stats.restarts += 1

@@ -190,6 +190,22 @@ def test_pah_acquisition_blackout_loss_and_automatic_reacquisition() -> None:
     assert blind and not any(sv.valid.position for sv in blind)
 
 
+@pytest.mark.parametrize(("port_m", "inhibit_m", "restarts"), [(2.0, 3.0, False), (6.0, 3.0, True), (2.0, 0.0, True)])
+def test_planned_restarts_wait_inside_the_inhibit_range(port_m: float, inhibit_m: float, restarts: bool) -> None:
+    """A planned restart every 3 s happens while the port is beyond ``restart_inhibit_range_m``
+    and not inside it (0 m: everywhere)."""
+    cfg = load_config("final_approach", pipeline__restart_period_s=3.0,
+                      pipeline__restart_inhibit_range_m=inhibit_m)
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(2))
+    fly = Fly(approach_pose(cfg, target, port_m))
+    hist = _run(tri, fly, 30, hook=lambda k, t: tri.seed_pose(fly.T(t), t) if k == 0 else None)
+    assert (tri.stats.restarts > 0) == restarts
+    if not restarts:
+        assert all(sv.mode == Mode.TRACKING for _, sv in hist[5:])
+
+
 def test_corridor_validation_rejects_a_pose_outside_it() -> None:
     """An external seed of a pose outside the approach corridor is not allowed into tracking."""
     cfg = load_config("final_approach", pipeline__corridor__attitude_tolerance_deg=10.0)

@@ -98,17 +98,30 @@ def transform_vectors(T: npt.ArrayLike, vectors: npt.ArrayLike) -> FloatArray:
     return np.asarray(vectors, dtype=np.float64) @ T[:3, :3].T
 
 
+_EYE3 = np.eye(3)
+_EYE3_TOL = 1e-5 * _EYE3  # numpy.allclose's rtol on the reference's entries
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_LAST_ROW_TOL = 1e-5 * _LAST_ROW
+
+
 def is_rigid(T: npt.ArrayLike, tol: float = 1e-6) -> bool:
-    """True when ``T`` is a finite 4x4 proper rigid transform within ``tol``."""
+    """True when ``T`` is a finite 4x4 proper rigid transform within ``tol``.
+
+    ``R^T R`` and the last row are compared with the identity as ``numpy.allclose(atol=tol)``
+    does (its default ``rtol`` of 1e-5 on the ones), and ``|det R - 1| < tol``; written out
+    because this check guards every pose entering the sensor and ICP, several times a frame.
+    """
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    if T.shape != (4, 4) or not np.isfinite(T).all():
         return False
     R = T[:3, :3]
-    return bool(
-        np.allclose(R.T @ R, np.eye(3), atol=tol)
-        and abs(np.linalg.det(R) - 1.0) < tol
-        and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol)
-    )
+    if (np.abs(R.T @ R - _EYE3) > _EYE3_TOL + tol).any():
+        return False
+    if (np.abs(T[3] - _LAST_ROW) > _LAST_ROW_TOL + tol).any():
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return abs(det - 1.0) < tol
 
 
 def check_rigid(T: npt.ArrayLike, name: str = "T", tol: float = 1e-6) -> FloatArray:

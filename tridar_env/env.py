@@ -344,7 +344,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
                 and c.angular_rate_deg_s <= e.angular_rate_max_deg_s
             )
             return "docked" if inside else "collision"
-        if w.hull_clearance() <= 0.0:
+        if w.hull_touches():
             return "collision"
         r = w.state[:3]
         if math.sqrt(float(r @ r)) > env.max_range_m:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import trimesh
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
@@ -39,12 +40,15 @@ from tridar_env.dynamics import (
 )
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
 #: The docking frame faces the port: x along port x, z against port z.
 R_PORT_DOCK = np.diag([1.0, -1.0, -1.0])
 R_PORT_DOCK.setflags(write=False)
 
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+# Longest edge of the subdivided mesh whose vertices bound the hull clearance from below [m].
+_SURFACE_EDGE_M = 0.5
 
 
 def _pose(R: FloatArray, t: FloatArray | None = None) -> FloatArray:
@@ -60,6 +64,35 @@ def _frozen(a: FloatArray) -> FloatArray:
     """Mark an array that is shared for a whole episode read-only (mutating it is a bug)."""
     a.setflags(write=False)
     return a
+
+
+def hull_touches_mesh(target: TargetModel, p_target: FloatArray, hull_radius: float) -> BoolArray:
+    """Whether a hull sphere at each of the points (M, 3) [m, target frame] touches the mesh.
+
+    Exact (the closest-point query's ``distance <= hull_radius``), but the query runs only for
+    points near the surface: every point of the mesh lies within ``edge`` of a vertex of the mesh
+    subdivided to edges of at most ``edge`` (its distance to its triangle's farthest corner is at
+    most the longest edge), so the distance to the mesh is at least the distance to the nearest
+    such vertex less ``edge``; when that bound clears the hull, the answer is no.
+    """
+    tree, edge = target.cached(("surface_vertices", _SURFACE_EDGE_M), lambda: _surface_vertices(target))
+    d, _ = tree.query(p_target)
+    touches = np.zeros(p_target.shape[0], dtype=bool)
+    near = np.flatnonzero(d - edge <= hull_radius)
+    if near.size:
+        _, dist, _ = trimesh.proximity.closest_point(target.mesh, p_target[near])
+        touches[near] = dist <= hull_radius
+    return touches
+
+
+def _surface_vertices(target: TargetModel) -> tuple[cKDTree, float]:
+    """KD-tree of the vertices of the target mesh subdivided to short edges, and the longest edge
+    left [m]."""
+    mesh = target.mesh
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=_SURFACE_EDGE_M)
+    tri = v[f]
+    edge = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max())
+    return cKDTree(v), edge
 
 
 @dataclass(frozen=True)
@@ -471,3 +504,12 @@ class World:
         p_target = self.T_lvlh_target[:3, :3].T @ r
         _, dist, _ = trimesh.proximity.closest_point(self.target.mesh, p_target[None])
         return float(dist[0]) - hull
+
+    def hull_touches(self) -> bool:
+        """``hull_clearance() <= 0``, exactly, at the cost of a KD-tree query unless the hull is
+        close to the mesh (see :func:`hull_touches_mesh`)."""
+        r = self.state[:3]
+        if math.sqrt(float(r @ r)) > self._mesh_reach:
+            return False
+        p_target = self.T_lvlh_target[:3, :3].T @ r
+        return bool(hull_touches_mesh(self.target, p_target[None], self._hull_radius)[0])

@@ -107,6 +107,27 @@ def test_pose_error_units() -> None:
     assert dr == pytest.approx(2.0)
 
 
+def test_is_rigid_matches_the_allclose_definition_at_the_tolerance() -> None:
+    """The written-out check gives allclose's answer on transforms perturbed around ``tol``."""
+
+    def reference(T: np.ndarray, tol: float) -> bool:
+        R = T[:3, :3]
+        return bool(np.all(np.isfinite(T)) and np.allclose(R.T @ R, np.eye(3), atol=tol)
+                    and abs(np.linalg.det(R) - 1.0) < tol and np.allclose(T[3], [0, 0, 0, 1], atol=tol))
+
+    rng = np.random.default_rng(4)
+    answers = []
+    for k in range(2000):
+        T = g.make_T(Rotation.random(random_state=k).as_matrix(), rng.normal(size=3))
+        tol = 10.0 ** rng.uniform(-9, -3)
+        T = T + rng.normal(size=(4, 4)) * tol * rng.uniform(0.0, 1.0)
+        if k % 7 == 0:
+            T[:3, :3] *= -1.0  # improper
+        answers.append(reference(T, tol))
+        assert g.is_rigid(T, tol) == answers[-1], (k, tol)
+    assert 0.1 < np.mean(answers) < 0.9  # both outcomes exercised
+
+
 def test_check_rigid_names_argument() -> None:
     with pytest.raises(ValueError, match="init_T"):
         g.check_rigid(np.diag([2.0, 1, 1, 1]), "init_T")

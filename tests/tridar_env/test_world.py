@@ -129,6 +129,29 @@ def test_hull_clears_the_target_anywhere_inside_the_capture_envelope(mission: st
     assert 0.02 < worst < 1.0  # measured 9.5 cm (iss_port petals), 10 cm (cygnss)
 
 
+@pytest.mark.parametrize("mission", ["final_approach", "tumbling_target"])
+def test_hull_touches_agrees_with_the_exact_clearance(mission: str) -> None:
+    """The cheap collision test (a vertex KD-tree bound, exact query only near the surface)
+    gives the exact answer at positions scattered around the target, touching ones included."""
+    w = _world(mission)
+    rng = np.random.default_rng(11)
+    R = w.target.radius
+    n_touch = n_near = 0
+    for _ in range(300):
+        # Points near the surface: a random vertex pushed out or in by up to twice the hull.
+        v = w.target.mesh.vertices[rng.integers(len(w.target.mesh.vertices))]
+        p_target = v + rng.normal(size=3) * w._hull_radius * rng.uniform(0.0, 2.0)
+        if rng.random() < 0.2:
+            p_target = rng.uniform(-1.2 * R, 1.2 * R, 3)
+        w.state = np.r_[w.T_lvlh_target[:3, :3] @ p_target, np.zeros(3)]
+        w._invalidate()
+        exact = w.hull_clearance()
+        assert w.hull_touches() == (exact <= 0.0), (p_target, exact)
+        n_touch += exact <= 0.0
+        n_near += 0.0 < exact < 1.0
+    assert n_touch >= 30 and n_near >= 30  # both sides of the boundary were exercised
+
+
 def test_imu_noise_follows_its_configured_model() -> None:
     """Gyro: a constant bias drawn at reset plus white noise, one reading per step for every
     consumer; accelerometer: white noise. Zero noise leaves the readings exact."""

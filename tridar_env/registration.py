@@ -10,7 +10,9 @@ TriDAR/Rendezvous-v0      rendezvous: from 500 m in bearing mode      20000
 
 ``gymnasium.make(id, config=path_or_overrides, perception="truth", **overrides)`` passes its
 keyword arguments to :class:`~tridar_env.env.DockingEnv`; a ``config`` dict is a set of overrides on
-the id's mission file.
+the id's mission file. ``gymnasium.make_vec(id, num_envs, vectorization_mode="vector_entry_point",
+perception="truth")`` builds :class:`~tridar_env.vector.TruthVectorEnv`, which steps all the
+environments as arrays (truth and truth-plus-noise perception only).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ def register_envs() -> None:
         gym.register(
             id=env_id,
             entry_point="tridar_env.registration:make_mission_env",
+            vector_entry_point="tridar_env.vector:TruthVectorEnv",
             max_episode_steps=steps,
             kwargs={"mission": mission},
         )

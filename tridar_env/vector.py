@@ -1,0 +1,493 @@
+"""``TruthVectorEnv``: many docking environments stepped as arrays, for fast training on truth.
+
+The full TriDAR pipeline is a per-environment program (a scan, a registration, a filter), so it
+vectorises across processes (``gymnasium.make_vec(..., vectorization_mode="async")``). The truth
+stand-ins (``perception="truth"`` and ``"truth+noise"``) are a few dozen small matrix products per
+step, and there Python's overhead per environment dominates: this class steps ``num_envs``
+environments as ``(num_envs, ...)`` arrays instead, with the physics, rewards, terminations and
+observations of :class:`~tridar_env.env.DockingEnv` (tests hold the two to round-off, step by
+step, seed by seed).
+
+    >>> import gymnasium as gym, tridar_env
+    >>> envs = gym.make_vec("TriDAR/FinalApproach-v0", num_envs=64,
+    ...                     vectorization_mode="vector_entry_point", perception="truth")
+    >>> obs, info = envs.reset(seed=0)
+    >>> obs.shape
+    (64, 33)
+
+Environment ``i`` reset with ``seed=s`` is ``DockingEnv`` reset with ``seed=s + i`` (as in
+Gymnasium's ``SyncVectorEnv``); a finished environment is reset by the next call to ``step``
+(``AutoresetMode.NEXT_STEP``), which ignores its action and returns its first observation.
+
+Scope: CW relative motion (``dynamics.orbit.model: cw``) and the ideal chaser attitude law (the
+3-axis thrust action); every target attitude mode. Initial states come from the same
+:meth:`World.reset <tridar_env.world.World.reset>` as the single environment, and a tumbling
+target's attitude from the same integrator, so only the per-step arithmetic is batched.
+``info`` holds arrays: ``t``, ``termination`` (``""`` while running), ``delta_v``,
+``propellant_kg``, ``clipped_actions``, ``truth_r_lvlh``, ``truth_v_lvlh`` and the ``reward_*``
+terms.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from scipy.spatial.transform import Rotation
+
+from perception.config import config_path
+from perception.geometry import matrix_to_quat
+from tridar_env.dynamics import G0
+from tridar_env.env import CAUSES, OBS_DIM, DockingEnv, _resolve_config, envelope_excess, observation_slices
+from tridar_env.world import ContactState, World, hull_touches_mesh
+
+FloatArray = npt.NDArray[np.float64]
+
+_SUPPORTED_PERCEPTION = ("truth", "truth+noise")
+_Z = np.array([0.0, 0.0, 1.0])
+_S = observation_slices()
+
+
+def _mv(M: FloatArray, v: FloatArray) -> FloatArray:
+    """Batched matrix-vector product: (N, 3, 3) or (3, 3) with (N, 3) -> (N, 3)."""
+    if M.ndim == 2:
+        return v @ M.T
+    return np.einsum("nij,nj->ni", M, v)
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross product of (N, 3) arrays (``numpy.cross`` costs ~60 us a call)."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
+
+
+def _mtv(M: FloatArray, v: FloatArray) -> FloatArray:
+    """Batched transposed product ``M^T v``: (N, 3, 3) with (N, 3) -> (N, 3)."""
+    return np.einsum("nji,nj->ni", M, v)
+
+
+class TruthVectorEnv(VectorEnv):
+    """``num_envs`` docking environments with truth (or truth-plus-noise) perception, as arrays.
+
+    Args:
+        num_envs: environments stepped together.
+        mission: mission name (the registered id's ``configs/missions`` file); set by
+            ``gymnasium.make_vec``.
+        config: a mission YAML path, ``MissionConfig`` or overrides dict (as ``DockingEnv``).
+        perception: ``"truth"`` or ``"truth+noise"`` (the mission files default to ``"tridar"``,
+            which this class does not batch).
+        max_episode_steps: truncation (``make_vec`` passes the id's); default
+            ``env.max_episode_steps``.
+        **overrides: nested config values (``env__frame_skip=2``).
+
+    Raises:
+        ValueError: a perception, orbit model or chaser attitude mode it does not batch, naming
+            the field and the value, and what to use instead.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        mission: str | None = None,
+        config: Any = None,
+        *,
+        perception: str | None = None,
+        max_episode_steps: int | None = None,
+        **overrides: Any,
+    ) -> None:
+        if not (isinstance(num_envs, int) and num_envs >= 1):
+            raise ValueError(f"num_envs={num_envs!r}; expected an int >= 1")
+        if perception is not None:
+            overrides["env__perception"] = perception
+        if config is None or isinstance(config, dict):
+            if mission is None:
+                raise ValueError("mission=None and config is not a file; expected a mission name or config")
+            overrides = {**(config or {}), **overrides}
+            config = config_path(mission)
+        cfg = _resolve_config(config, **overrides)
+        problems = []
+        if cfg.env.perception not in _SUPPORTED_PERCEPTION:
+            problems.append(
+                f"env.perception={cfg.env.perception!r}; expected one of {_SUPPORTED_PERCEPTION} "
+                "(pass perception='truth'; the pipeline vectorises with vectorization_mode='async')"
+            )
+        if cfg.dynamics.orbit.model != "cw":
+            problems.append(f"dynamics.orbit.model={cfg.dynamics.orbit.model!r}; expected 'cw'")
+        if cfg.dynamics.chaser.attitude != "ideal":
+            problems.append(f"dynamics.chaser.attitude={cfg.dynamics.chaser.attitude!r}; expected 'ideal'")
+        if problems:
+            raise ValueError(
+                "TruthVectorEnv cannot batch this configuration: " + "; ".join(problems)
+                + " (use gymnasium.make_vec(..., vectorization_mode='sync' or 'async') instead)"
+            )
+        self.cfg = cfg
+        self.num_envs = num_envs
+        # One single environment as the reference of spaces, mounts and bounds, and one World per
+        # environment for its initial-state draws and (tumbling) target attitude.
+        proto = DockingEnv(cfg)
+        self.target = proto.target
+        self.single_action_space = proto.action_space
+        self.single_observation_space = proto.observation_space
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.max_episode_steps = int(max_episode_steps or cfg.env.max_episode_steps)
+        self.worlds = [World(cfg, self.target) for _ in range(num_envs)]
+        w0 = self.worlds[0]
+        self.dt = w0.dt
+        self.n = w0.n
+        self._phi_T = w0._trans.phi.T.copy()
+        self._gamma_T = w0._trans.gamma.T.copy()
+        ch = cfg.dynamics.chaser
+        self._ch = ch
+        self._isp_g0 = ch.isp_s * G0
+        self._thrust_in_body = ch.thrust_frame == "body"
+        self._hull = float(ch.hull_radius_m)
+        self._reach = w0._mesh_reach
+        self._T_chaser_sensor = w0.T_chaser_sensor
+        self._T_chaser_dock = w0.T_chaser_dock
+        self._R_target_dock = w0._R_target_dock
+        self._T_target_port = np.asarray(self.target.T_target_port, dtype=np.float64)
+        self._T_dock_sensor = proto._T_dock_sensor
+        self._obs_low = proto._obs_low64
+        self._obs_high = proto._obs_high64
+        self._att_mode = cfg.dynamics.target_attitude.mode
+        e = cfg.env
+        self._sigmas = (
+            (e.truth_noise_position_m, e.truth_noise_velocity_m_s,
+             math.radians(e.truth_noise_attitude_deg), math.radians(e.truth_noise_rate_deg_s))
+            if cfg.env.perception == "truth+noise" else (0.0, 0.0, 0.0, 0.0)
+        )
+        self._noisy = any(s > 0 for s in self._sigmas)
+        self._ref_point = (
+            self._T_target_port[:3, 3].copy() if e.truth_noise_reference == "port" else np.zeros(3)
+        )
+        self._gyro_sigma = math.radians(ch.gyro_noise_deg_s)
+        proto.close()
+        N = num_envs
+        self._rngs = [seeding.np_random(None)[0] for _ in range(N)]
+        self._x = np.zeros((N, 6))
+        self._prop = np.zeros(N)
+        self._dv = np.zeros(N)
+        self._t = np.zeros(N)
+        self._steps = np.zeros(N, dtype=np.int64)
+        self._bias = np.zeros((N, 3))
+        self._R_lt = np.tile(np.eye(3), (N, 1, 1))
+        self._w_t = np.zeros((N, 3))  # target angular velocity relative to LVLH, LVLH axes
+        self._err = np.zeros((N, 12))
+        self._t_err = np.zeros(N)
+        self._prev_distance = np.zeros(N)
+        self._prev_lateral = np.zeros(N)
+        self._autoreset = np.zeros(N, dtype=bool)
+        self._ready = False
+
+    # ------------------------------------------------------------------ reset
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[npt.NDArray[np.float32], dict[str, Any]]:
+        """Reset every environment; ``seed`` is an int (environment ``i`` gets ``seed + i``), a
+        list of per-environment seeds, or None (fresh entropy on the first call)."""
+        del options
+        N = self.num_envs
+        if seed is None:
+            seeds: list[int | None] = [None] * N
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + i for i in range(N)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != N:
+                raise ValueError(f"seed has {len(seeds)} entries; expected num_envs={N}")
+        for i, s in enumerate(seeds):
+            if s is not None:
+                self._rngs[i] = seeding.np_random(s)[0]
+        self._reset_envs(np.arange(N))
+        self._ready = True
+        self._autoreset[:] = False
+        obs = self._observe(first=np.ones(N, dtype=bool))
+        info = self._info(np.zeros(N, dtype=np.int64), {}, np.zeros(N, dtype=np.int64))
+        return obs, info
+
+    def _reset_envs(self, idx: npt.NDArray[np.intp]) -> None:
+        """Draw the initial states of environments ``idx`` (``World.reset``, in order)."""
+        for i in idx.tolist():
+            w = self.worlds[i]
+            w.reset(self._rngs[i])
+            self._x[i] = w.state
+            self._prop[i] = w.mass.propellant_kg
+            self._bias[i] = w._gyro_bias
+            self._R_lt[i] = w.R_lvlh_target
+            self._w_t[i] = w.omega_target_lvlh
+        self._dv[idx] = 0.0
+        self._t[idx] = 0.0
+        self._steps[idx] = 0
+        c = self._contact(idx)
+        self._prev_distance[idx] = c["distance"]
+        self._prev_lateral[idx] = c["lateral"]
+
+    # ------------------------------------------------------------------ step
+    def step(
+        self, actions: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float32], FloatArray, npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]]:
+        if not self._ready:
+            raise RuntimeError("TruthVectorEnv.step() called before reset(); call reset() first")
+        N = self.num_envs
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"actions has shape {a.shape}; expected {self.action_space.shape}")
+        bad = ~np.isfinite(a).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"actions[{i}]={a[i].tolist()} contains NaN or inf; expected finite values in [-1, 1]")
+        clipped = np.count_nonzero(np.abs(a) > 1.0, axis=1)
+        a = np.clip(a, -1.0, 1.0)
+        fresh = self._autoreset.copy()
+        run = np.flatnonzero(~fresh)
+        if fresh.any():
+            self._reset_envs(np.flatnonzero(fresh))
+            clipped[fresh] = 0
+        thrust = a * self._ch.max_thrust_n
+        cause = np.zeros(N, dtype=np.int64)
+        prop_before = self._prop.copy()
+        active = run
+        for _ in range(self.cfg.env.frame_skip):
+            self._physics(active, thrust[active])
+            cause[active] = self._termination(active)
+            active = active[cause[active] == 0]
+            if active.size == 0:
+                break
+        self._steps[run] += 1
+        obs = self._observe(first=fresh)
+        terms = self._reward_terms(run, cause[run], prop_before[run] - self._prop[run])
+        reward = np.zeros(N)
+        for v in terms.values():
+            reward[run] += v
+        terminated = cause > 0
+        truncated = (self._steps >= self.max_episode_steps) & ~terminated & ~fresh
+        self._autoreset = terminated | truncated
+        info = self._info(cause, {k: self._scatter(run, v) for k, v in terms.items()}, clipped)
+        return obs, reward, terminated, truncated, info
+
+    def _scatter(self, idx: npt.NDArray[np.intp], v: FloatArray) -> FloatArray:
+        out = np.zeros(self.num_envs)
+        out[idx] = v
+        return out
+
+    def _physics(self, idx: npt.NDArray[np.intp], thrust: FloatArray) -> None:
+        """One frame of ``World.step`` for environments ``idx``: thrust, propellant, CW, attitude."""
+        if idx.size == 0:
+            return
+        R_lc = self._R_lt[idx] @ self._R_target_dock
+        f = _mv(R_lc, thrust) if self._thrust_in_body else thrust
+        f = np.clip(f, -self._ch.max_thrust_n, self._ch.max_thrust_n)
+        magnitude = np.sqrt(np.einsum("ni,ni->n", f, f))
+        need = magnitude / self._isp_g0 * self.dt
+        prop = self._prop[idx]
+        short = need > prop
+        if short.any():
+            f[short] *= (prop[short] / need[short])[:, None]
+            need = np.where(short, prop, need)
+        m_before = self._ch.dry_mass_kg + prop
+        accel = f / m_before[:, None]
+        self._prop[idx] = np.maximum(prop - need, 0.0)
+        self._dv[idx] += np.sqrt(np.einsum("ni,ni->n", f, f)) / m_before * self.dt
+        self._x[idx] = self._x[idx] @ self._phi_T + accel @ self._gamma_T
+        self._t[idx] += self.dt
+        if self._att_mode != "lvlh_hold":
+            for i in idx.tolist():
+                w = self.worlds[i]
+                w.target_attitude.step(self.dt)
+                w._invalidate()
+                self._R_lt[i] = w.R_lvlh_target
+                self._w_t[i] = w.omega_target_lvlh
+
+    # ------------------------------------------------------------------ truth geometry
+    def _contact(self, idx: npt.NDArray[np.intp]) -> dict[str, FloatArray]:
+        """``World.contact`` (and the dock-to-port distance) for environments ``idx``."""
+        R_lt = self._R_lt[idx]
+        r, v = self._x[idx, :3], self._x[idx, 3:]
+        R_lc = R_lt @ self._R_target_dock
+        R_lp = R_lt @ self._T_target_port[:3, :3]
+        p_port = _mv(R_lt, np.broadcast_to(self._T_target_port[:3, 3], r.shape))
+        p_dock = _mv(R_lc, np.broadcast_to(self._T_chaser_dock[:3, 3], r.shape)) + r
+        dp = p_dock - p_port
+        d = _mtv(R_lp, dp)
+        w = self._w_t[idx]  # the ideal chaser turns with the target
+        v_rel = v + _cross(w, p_dock - r) - _cross(w, p_port)
+        vd = _mtv(R_lp, v_rel)
+        z_dock = R_lc[:, :, 2]
+        cosang = np.clip(-np.einsum("ni,ni->n", z_dock, R_lp[:, :, 2]), -1.0, 1.0)
+        return {
+            "axial": d[:, 2], "lateral": np.hypot(d[:, 0], d[:, 1]), "closing": -vd[:, 2],
+            "lateral_speed": np.hypot(vd[:, 0], vd[:, 1]),
+            "misalignment": np.degrees(np.arccos(cosang)), "rate": np.zeros(idx.size),
+            "distance": np.sqrt(np.einsum("ni,ni->n", dp, dp)),
+        }
+
+    def _termination(self, idx: npt.NDArray[np.intp]) -> npt.NDArray[np.int64]:
+        """``DockingEnv._termination`` for environments ``idx``: 0, or 1 + index in ``CAUSES``."""
+        env = self.cfg.env
+        e = env.envelope
+        c = self._contact(idx)
+        ax, lat = c["axial"], c["lateral"]
+        code = np.zeros(idx.size, dtype=np.int64)
+        port = (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull)
+        inside = (
+            (e.axial_speed_min_m_s <= c["closing"]) & (c["closing"] <= e.axial_speed_max_m_s)
+            & (lat <= e.lateral_offset_max_m) & (c["lateral_speed"] <= e.lateral_speed_max_m_s)
+            & (c["misalignment"] <= e.misalignment_max_deg) & (c["rate"] <= e.angular_rate_max_deg_s)
+        )
+        code[port] = np.where(inside[port], 1, 2)
+        r = self._x[idx, :3]
+        dist = np.sqrt(np.einsum("ni,ni->n", r, r))
+        near = np.flatnonzero((code == 0) & (dist <= self._reach))
+        if near.size:
+            p_target = _mtv(self._R_lt[idx[near]], r[near])
+            code[near[hull_touches_mesh(self.target, p_target, self._hull)]] = 2
+        code[(code == 0) & (dist > env.max_range_m)] = 3
+        if env.corridor_half_angle_deg is not None:
+            off = np.degrees(np.arctan2(lat, ax))
+            code[(code == 0) & (ax > 2.0) & (off > env.corridor_half_angle_deg)] = 5
+        code[(code == 0) & (self._prop[idx] <= 0.0)] = 4
+        return code
+
+    def _reward_terms(
+        self, idx: npt.NDArray[np.intp], cause: npt.NDArray[np.int64], fuel_used: FloatArray
+    ) -> dict[str, FloatArray]:
+        """``DockingEnv._reward_terms`` for environments ``idx``."""
+        env = self.cfg.env
+        rw, e = env.reward, env.envelope
+        c = self._contact(idx)
+        d, lat, ax = c["distance"], c["lateral"], c["axial"]
+        progress = self._prev_distance[idx] - d
+        lateral = self._prev_lateral[idx] - lat
+        self._prev_distance[idx], self._prev_lateral[idx] = d, lat
+        los = np.arctan2(lat, np.maximum(ax, 1e-3))
+        dt = env.frame_period_s * env.frame_skip
+        ax0 = np.maximum(ax, 0.0)
+        v_max = env.speed_limit_floor_m_s + env.speed_limit_gain_s * ax0
+        v_ref = np.minimum(0.5 * (e.axial_speed_min_m_s + e.axial_speed_max_m_s)
+                           + env.speed_profile_gain_s * ax0, env.speed_profile_max_m_s)
+        collision = np.where(cause == 2, -rw.collision, 0.0)
+        port = (cause == 2) & (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull)
+        for k in np.flatnonzero(port).tolist():
+            cs = ContactState(float(ax[k]), float(lat[k]), float(c["closing"][k]),
+                              float(c["lateral_speed"][k]), float(c["misalignment"][k]), float(c["rate"][k]))
+            collision[k] *= min(1.0, rw.near_miss + envelope_excess(cs, e))
+        return {
+            "reward_progress": rw.progress * progress,
+            "reward_lateral": rw.lateral * lateral,
+            "reward_alignment": -rw.alignment * (1.0 - np.cos(los)),
+            "reward_speed_limit": -rw.speed_limit * np.maximum(0.0, c["closing"] - v_max),
+            "reward_speed_profile": -rw.speed_profile * np.abs(c["closing"] - v_ref) * dt,
+            "reward_time": np.full(idx.size, -rw.time * dt),
+            "reward_fuel": -rw.fuel * fuel_used,
+            "reward_success": np.where(cause == 1, rw.success, 0.0),
+            "reward_collision": collision,
+            "reward_corridor": np.where((cause == 3) | (cause == 5), -rw.corridor, 0.0),
+        }
+
+    # ------------------------------------------------------------------ observation
+    def _draws(self, first: npt.NDArray[np.bool_]) -> tuple[FloatArray, FloatArray]:
+        """Per environment, in ``DockingEnv``'s order: the 12 truth-noise normals, then the gyro's
+        3 (each only when configured); the noise follows ``TruthObserver``'s Gauss-Markov law."""
+        N = self.num_envs
+        gyro = np.zeros((N, 3))
+        if not (self._noisy or self._gyro_sigma > 0):
+            return self._err, gyro
+        tau = self.cfg.env.truth_noise_correlation_s
+        for i, rng in enumerate(self._rngs):
+            if self._noisy:
+                w = rng.standard_normal(12)
+                if first[i] or tau <= 0.0:
+                    self._err[i] = w
+                else:
+                    phi = math.exp(-max(self._t[i] - self._t_err[i], 0.0) / tau)
+                    self._err[i] = phi * self._err[i] + math.sqrt(1.0 - phi * phi) * w
+                self._t_err[i] = self._t[i]
+            if self._gyro_sigma > 0:
+                gyro[i] = rng.normal(0.0, self._gyro_sigma, 3)
+        return self._err, gyro
+
+    def _observe(self, first: npt.NDArray[np.bool_]) -> npt.NDArray[np.float32]:
+        """``DockingEnv._observation`` of the truth (plus noise) state of every environment."""
+        N = self.num_envs
+        R_lt = self._R_lt
+        r, v = self._x[:, :3], self._x[:, 3:]
+        R_lc = R_lt @ self._R_target_dock
+        w_c = self._w_t  # ideal chaser: turns with the target
+        # World.sensor_truth: T_sensor_target, its velocity and angular velocity.
+        R_ls = R_lc @ self._T_chaser_sensor[:3, :3]
+        r_cs = _mv(R_lc, np.broadcast_to(self._T_chaser_sensor[:3, 3], r.shape))
+        p_ls = r_cs + r
+        R_st = np.swapaxes(R_ls, 1, 2) @ R_lt
+        p = -_mtv(R_ls, p_ls)
+        v_s = v + _cross(w_c, r_cs)
+        w_s = _mtv(R_ls, w_c)
+        vel = -_mtv(R_ls, v_s) - _cross(w_s, p)
+        omega = np.zeros((N, 3))  # R_sl (w_target - w_chaser)
+        err, gyro_noise = self._draws(first)
+        if self._noisy:
+            sp, sv, sa, sw = self._sigmas
+            R_est = Rotation.from_rotvec(sa * err[:, 6:9]).as_matrix() @ R_st
+            ref = self._ref_point
+            p = p + _mv(R_st, np.broadcast_to(ref, p.shape)) + sp * err[:, 0:3] - _mv(R_est, np.broadcast_to(ref, p.shape))
+            R_st = R_est
+            vel = vel + sv * err[:, 3:6]
+            omega = omega + sw * err[:, 9:12]
+        obs = np.zeros((N, OBS_DIM))
+        S = _S
+        obs[:, S["mode_onehot"].start + 2] = 1.0  # tracking
+        obs[:, S["valid"]] = 1.0  # every field valid
+        R_ds, p_ds = self._T_dock_sensor[:3, :3], self._T_dock_sensor[:3, 3]
+        R_tp, p_tp = self._T_target_port[:3, :3], self._T_target_port[:3, 3]
+        R_dp = R_ds @ R_st @ R_tp
+        r_port_s = _mv(R_st, np.broadcast_to(p_tp, p.shape))
+        obs[:, S["port_position_dock"]] = (r_port_s + p) @ R_ds.T + p_ds
+        obs[:, S["port_velocity_dock"]] = (vel + _cross(omega, r_port_s)) @ R_ds.T
+        obs[:, S["q_dock_port"]] = matrix_to_quat(R_dp)
+        obs[:, S["omega_port_dock"]] = omega @ R_ds.T
+        rng_m = np.sqrt(np.einsum("ni,ni->n", p, p))
+        obs[:, S["range"].start] = rng_m
+        obs[:, S["range_rate"].start] = np.einsum("ni,ni->n", p, vel) / np.maximum(rng_m, 1e-9)
+        b = S["bearing"].start
+        obs[:, b] = np.arctan2(p[:, 0], p[:, 2])
+        obs[:, b + 1] = np.arctan2(-p[:, 1], np.hypot(p[:, 0], p[:, 2]))
+        obs[:, S["fitness"].start] = 1.0
+        fuel0 = self._ch.propellant_kg
+        obs[:, S["fuel_fraction"].start] = self._prop / fuel0 if fuel0 > 0 else 0.0
+        obs[:, S["time_fraction"].start] = self._steps / self.cfg.env.max_episode_steps
+        w_body = _mtv(R_lc, w_c + self.n * _Z)
+        obs[:, S["chaser_rate_body"]] = w_body + self._bias + gyro_noise
+        np.clip(obs, self._obs_low, self._obs_high, out=obs)
+        return obs.astype(np.float32)
+
+    def _info(
+        self, cause: npt.NDArray[np.int64], terms: dict[str, FloatArray], clipped: npt.NDArray[np.int64]
+    ) -> dict[str, Any]:
+        names = np.array(("",) + CAUSES, dtype=object)
+        info: dict[str, Any] = {
+            "t": self._t.copy(),
+            "termination": names[cause],
+            "delta_v": self._dv.copy(),
+            "propellant_kg": self._prop.copy(),
+            "clipped_actions": np.asarray(clipped, dtype=np.int64),
+            "truth_r_lvlh": self._x[:, :3].copy(),
+            "truth_v_lvlh": self._x[:, 3:].copy(),
+        }
+        info.update(terms)
+        return info
+
+    def close_extras(self, **kwargs: Any) -> None:
+        del kwargs
+        self.worlds = []
+
+
+__all__ = ["TruthVectorEnv"]

@@ -1,13 +1,15 @@
 """tridar-env: a Gymnasium environment for spacecraft rendezvous and docking seen through TriDAR.
 
 ``import tridar_env`` registers ``TriDAR/FinalApproach-v0``, ``TriDAR/TumblingTarget-v0`` and
-``TriDAR/Rendezvous-v0`` with Gymnasium.
+``TriDAR/Rendezvous-v0`` with Gymnasium (``gymnasium.make`` builds a :class:`DockingEnv`;
+``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`` a :class:`TruthVectorEnv`).
 """
 
 from tridar_env.env import OBSERVATION_STRUCTURE, DockingEnv
 from tridar_env.registration import ENV_IDS, register_envs
+from tridar_env.vector import TruthVectorEnv
 
 __version__ = "0.1.0"
-__all__ = ["ENV_IDS", "OBSERVATION_STRUCTURE", "DockingEnv", "register_envs"]
+__all__ = ["ENV_IDS", "OBSERVATION_STRUCTURE", "DockingEnv", "TruthVectorEnv", "register_envs"]
 
 register_envs()

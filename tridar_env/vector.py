@@ -31,11 +31,10 @@ terms.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
-from gymnasium import spaces
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
@@ -44,7 +43,14 @@ from scipy.spatial.transform import Rotation
 from perception.config import config_path
 from perception.geometry import matrix_to_quat
 from tridar_env.dynamics import G0
-from tridar_env.env import CAUSES, OBS_DIM, DockingEnv, _resolve_config, envelope_excess, observation_slices
+from tridar_env.env import (
+    CAUSES,
+    OBS_DIM,
+    DockingEnv,
+    _resolve_config,
+    envelope_excess,
+    observation_slices,
+)
 from tridar_env.world import ContactState, World, hull_touches_mesh
 
 FloatArray = npt.NDArray[np.float64]
@@ -92,7 +98,7 @@ class TruthVectorEnv(VectorEnv):
             the field and the value, and what to use instead.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
 
     def __init__(
         self,

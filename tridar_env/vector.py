@@ -276,7 +276,8 @@ class TruthVectorEnv(VectorEnv):
         for v in terms.values():
             reward[run] += v
         terminated = cause > 0
-        truncated = (self._steps >= self.max_episode_steps) & ~terminated & ~fresh
+        # As gymnasium's TimeLimit: the step limit truncates whether or not the step also ended it.
+        truncated = (self._steps >= self.max_episode_steps) & ~fresh
         self._autoreset = terminated | truncated
         info = self._info(cause, {k: self._scatter(run, v) for k, v in terms.items()}, clipped)
         return obs, reward, terminated, truncated, info

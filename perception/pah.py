@@ -18,10 +18,10 @@ enumerated by a partial tree traversal (first edge from the length table, each f
 from the connectivity rows of the vertices matched so far), vectorised over the partial matches.
 Each match gives a pose ``p = R s + T`` (eq. 1) by a batched SVD; matches that are mirror images,
 that show back faces to the sensor or (constrained search) that fall outside the approach corridor
-are dropped before any fit check. The survivors are
-scored by a surface-fit precheck on a decimated scan (an occupancy grid of the voxels near the
-model surface, O(1) per point), the best few by the full O(n) check against the dense model's
-KD-tree, and the distinct best ones are polished by a short ICP and verified on the whole scan.
+are dropped before any fit check. The survivors are scored by a surface-fit precheck on a
+decimated scan (an occupancy grid of the voxels near the model surface, O(1) per point), the best
+few by the full O(n) check against the dense model's KD-tree, and the distinct best ones are
+polished by a short ICP and verified on the whole scan.
 
 Verification (Figure 2's fit check, plus free space): besides the surface fit, every scan ray is
 cast against the model under the hypothesis (one Embree call for all hypotheses); a point measured

@@ -30,14 +30,22 @@ ENV_IDS: dict[str, str] = {
 }
 
 
+def mission_source(mission: str | None, config: Any = None) -> tuple[Any, dict[str, Any]]:
+    """What an id's entry point loads: ``(config source, overrides)``. A path, mission name or
+    ``MissionConfig`` stands on its own; None or an overrides dict goes on the id's mission file."""
+    if config is None or isinstance(config, dict):
+        if mission is None:
+            raise ValueError("mission=None and config is not a file; expected a mission name or config")
+        return config_path(mission), dict(config or {})
+    return config, {}
+
+
 def make_mission_env(mission: str, config: Any = None, **kwargs: Any) -> Any:
     """Entry point: the id's mission file, with ``config`` (a path or overrides dict) on top."""
     from tridar_env.env import DockingEnv
 
-    if config is None or isinstance(config, dict):
-        overrides = dict(config or {})
-        return DockingEnv(config_path(mission), **overrides, **kwargs)
-    return DockingEnv(config, **kwargs)
+    source, overrides = mission_source(mission, config)
+    return DockingEnv(source, **overrides, **kwargs)
 
 
 def register_envs() -> None:

@@ -40,7 +40,6 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from scipy.spatial.transform import Rotation
 
-from perception.config import config_path
 from perception.geometry import matrix_to_quat
 from tridar_env.dynamics import G0
 from tridar_env.env import (
@@ -51,6 +50,7 @@ from tridar_env.env import (
     envelope_excess,
     observation_slices,
 )
+from tridar_env.registration import mission_source
 from tridar_env.world import ContactState, World, hull_touches_mesh
 
 FloatArray = npt.NDArray[np.float64]
@@ -114,12 +114,8 @@ class TruthVectorEnv(VectorEnv):
             raise ValueError(f"num_envs={num_envs!r}; expected an int >= 1")
         if perception is not None:
             overrides["env__perception"] = perception
-        if config is None or isinstance(config, dict):
-            if mission is None:
-                raise ValueError("mission=None and config is not a file; expected a mission name or config")
-            overrides = {**(config or {}), **overrides}
-            config = config_path(mission)
-        cfg = _resolve_config(config, **overrides)
+        source, file_overrides = mission_source(mission, config)
+        cfg = _resolve_config(source, **{**file_overrides, **overrides})
         problems = []
         if cfg.env.perception not in _SUPPORTED_PERCEPTION:
             problems.append(
@@ -262,16 +258,22 @@ class TruthVectorEnv(VectorEnv):
         thrust = a * self._ch.max_thrust_n
         cause = np.zeros(N, dtype=np.int64)
         prop_before = self._prop.copy()
+        # Each environment's contact at its last evaluation, which is at its final state (it stops
+        # stepping once terminated): the rewards read it instead of recomputing it.
+        last: dict[str, npt.NDArray[Any]] = {}
         active = run
         for _ in range(self.cfg.env.frame_skip):
             self._physics(active, thrust[active])
-            cause[active] = self._termination(active)
+            cause[active], c = self._termination(active)
+            for k, v in c.items():
+                last.setdefault(k, np.zeros(N, dtype=v.dtype))[active] = v
             active = active[cause[active] == 0]
             if active.size == 0:
                 break
         self._steps[run] += 1
         obs = self._observe(first=fresh)
-        terms = self._reward_terms(run, cause[run], prop_before[run] - self._prop[run])
+        c_run = {k: v[run] for k, v in last.items()}
+        terms = self._reward_terms(run, cause[run], prop_before[run] - self._prop[run], c_run)
         reward = np.zeros(N)
         for v in terms.values():
             reward[run] += v
@@ -316,8 +318,9 @@ class TruthVectorEnv(VectorEnv):
                 self._w_t[i] = w.omega_target_lvlh
 
     # ------------------------------------------------------------------ truth geometry
-    def _contact(self, idx: npt.NDArray[np.intp]) -> dict[str, FloatArray]:
-        """``World.contact`` (and the dock-to-port distance) for environments ``idx``."""
+    def _contact(self, idx: npt.NDArray[np.intp]) -> dict[str, npt.NDArray[Any]]:
+        """``World.contact``, the dock-to-port distance and whether the docking interface meets
+        the port (``DockingEnv._port_contact``) for environments ``idx``."""
         R_lt = self._R_lt[idx]
         r, v = self._x[idx, :3], self._x[idx, 3:]
         R_lc = R_lt @ self._R_target_dock
@@ -331,21 +334,24 @@ class TruthVectorEnv(VectorEnv):
         vd = _mtv(R_lp, v_rel)
         z_dock = R_lc[:, :, 2]
         cosang = np.clip(-np.einsum("ni,ni->n", z_dock, R_lp[:, :, 2]), -1.0, 1.0)
+        ax, lat = d[:, 2], np.hypot(d[:, 0], d[:, 1])
         return {
-            "axial": d[:, 2], "lateral": np.hypot(d[:, 0], d[:, 1]), "closing": -vd[:, 2],
+            "axial": ax, "lateral": lat, "closing": -vd[:, 2],
             "lateral_speed": np.hypot(vd[:, 0], vd[:, 1]),
             "misalignment": np.degrees(np.arccos(cosang)), "rate": np.zeros(idx.size),
             "distance": np.sqrt(np.einsum("ni,ni->n", dp, dp)),
+            "port": (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull),
         }
 
-    def _termination(self, idx: npt.NDArray[np.intp]) -> npt.NDArray[np.int64]:
-        """``DockingEnv._termination`` for environments ``idx``: 0, or 1 + index in ``CAUSES``."""
+    def _termination(self, idx: npt.NDArray[np.intp]) -> tuple[npt.NDArray[np.int64], dict[str, Any]]:
+        """``DockingEnv._termination`` for environments ``idx``: 0, or 1 + index in ``CAUSES``; and
+        the contact it was judged on."""
         env = self.cfg.env
         e = env.envelope
         c = self._contact(idx)
         ax, lat = c["axial"], c["lateral"]
         code = np.zeros(idx.size, dtype=np.int64)
-        port = (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull)
+        port = c["port"]
         inside = (
             (e.axial_speed_min_m_s <= c["closing"]) & (c["closing"] <= e.axial_speed_max_m_s)
             & (lat <= e.lateral_offset_max_m) & (c["lateral_speed"] <= e.lateral_speed_max_m_s)
@@ -363,15 +369,15 @@ class TruthVectorEnv(VectorEnv):
             off = np.degrees(np.arctan2(lat, ax))
             code[(code == 0) & (ax > 2.0) & (off > env.corridor_half_angle_deg)] = 5
         code[(code == 0) & (self._prop[idx] <= 0.0)] = 4
-        return code
+        return code, c
 
     def _reward_terms(
-        self, idx: npt.NDArray[np.intp], cause: npt.NDArray[np.int64], fuel_used: FloatArray
+        self, idx: npt.NDArray[np.intp], cause: npt.NDArray[np.int64], fuel_used: FloatArray,
+        c: dict[str, Any],
     ) -> dict[str, FloatArray]:
-        """``DockingEnv._reward_terms`` for environments ``idx``."""
+        """``DockingEnv._reward_terms`` for environments ``idx``, whose final contact is ``c``."""
         env = self.cfg.env
         rw, e = env.reward, env.envelope
-        c = self._contact(idx)
         d, lat, ax = c["distance"], c["lateral"], c["axial"]
         progress = self._prev_distance[idx] - d
         lateral = self._prev_lateral[idx] - lat
@@ -383,7 +389,7 @@ class TruthVectorEnv(VectorEnv):
         v_ref = np.minimum(0.5 * (e.axial_speed_min_m_s + e.axial_speed_max_m_s)
                            + env.speed_profile_gain_s * ax0, env.speed_profile_max_m_s)
         collision = np.where(cause == 2, -rw.collision, 0.0)
-        port = (cause == 2) & (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull)
+        port = (cause == 2) & c["port"]
         for k in np.flatnonzero(port).tolist():
             cs = ContactState(float(ax[k]), float(lat[k]), float(c["closing"][k]),
                               float(c["lateral_speed"][k]), float(c["misalignment"][k]), float(c["rate"][k]))

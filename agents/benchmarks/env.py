@@ -34,6 +34,18 @@ def _measure(fn, repeats: int) -> tuple[float, float]:
     return float(np.median(rates)), float(np.percentile(rates, 10))
 
 
+def _vector_row(venv, env_id: str, perception: str, envs: str, base: float | None, secs: int,
+                repeats: int) -> dict:
+    """One table row for a vector env (then closed); ``benchmark_vector_step`` already counts
+    every environment's steps."""
+    med, slow = _measure(lambda: benchmark_vector_step(venv, target_duration=secs, seed=0), repeats)
+    venv.close()
+    return {
+        "id": env_id, "perception": perception, "envs": envs, "steps_per_s_median": med,
+        "steps_per_s_p10": slow, "ratio_to_truth": med / base if base else 1.0,
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     rows = []
     secs = max(round(args.seconds), 1)
@@ -51,17 +63,7 @@ def run(args: argparse.Namespace) -> int:
             if args.vector > 1:
                 venv = gym.make_vec(env_id, num_envs=args.vector, vectorization_mode="async",
                                     vector_kwargs={"context": "spawn"}, perception=perception)
-                # benchmark_vector_step counts every environment's steps already.
-                med_v, slow_v = _measure(
-                    lambda venv=venv: benchmark_vector_step(venv, target_duration=secs, seed=0),
-                    args.repeats,
-                )
-                rows.append({
-                    "id": env_id, "perception": perception, "envs": f"{args.vector} async",
-                    "steps_per_s_median": med_v, "steps_per_s_p10": slow_v,
-                    "ratio_to_truth": med_v / base if base else 1.0,
-                })
-                venv.close()
+                rows.append(_vector_row(venv, env_id, perception, f"{args.vector} async", base, secs, args.repeats))
             if perception == "truth" and args.batched > 0:
                 try:
                     benv = gym.make_vec(env_id, num_envs=args.batched, vectorization_mode="vector_entry_point",
@@ -69,16 +71,7 @@ def run(args: argparse.Namespace) -> int:
                 except ValueError as exc:  # a configuration the batched env does not cover
                     print(f"{env_id}: no batched row ({exc})")
                     continue
-                med_b, slow_b = _measure(
-                    lambda benv=benv: benchmark_vector_step(benv, target_duration=secs, seed=0),
-                    args.repeats,
-                )
-                rows.append({
-                    "id": env_id, "perception": perception, "envs": f"{args.batched} batched",
-                    "steps_per_s_median": med_b, "steps_per_s_p10": slow_b,
-                    "ratio_to_truth": med_b / base if base else 1.0,
-                })
-                benv.close()
+                rows.append(_vector_row(benv, env_id, perception, f"{args.batched} batched", base, secs, args.repeats))
     print(format_table(rows))
     print("goals: >= 20,000 steps/s truth, >= 200 steps/s tridar (one core)")
     return 0

@@ -45,9 +45,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
-from perception.geometry import fast_cross, fast_rotvec_to_matrix, make_T, skew
+from perception.geometry import (
+    fast_cross,
+    fast_matrix_to_rotvec,
+    fast_rotvec_to_matrix,
+    make_T,
+    skew,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -311,10 +316,17 @@ class PoseFilter:
         p, _, R, _, _, _ = self._propagate(float(t) - self.t)
         return make_T(R, p - R @ self.r)
 
+    def copy(self) -> PoseFilter:
+        """An independent snapshot of the state.
+
+        Cheap (no deep copy): the filter never writes into its state arrays, it rebinds them, so
+        the snapshot may share them. The process-noise cache is shared too (same ``dt``, same Q).
+        """
+        return copy.copy(self)
+
     def motion(self) -> Callable[[float], FloatArray]:
         """``t -> T_sensor_target`` from the current state (for de-skewing a scan)."""
-        snapshot = copy.deepcopy(self)
-        return snapshot.pose_at
+        return self.copy().pose_at
 
     def predict(self, t: float) -> None:
         """Propagate the state and covariance to time ``t`` (>= current time)."""
@@ -339,7 +351,7 @@ class PoseFilter:
         T_meas, cov_pose = self._to_ref(np.asarray(T_meas, dtype=np.float64), cov_pose)
         z = np.concatenate([
             T_meas[:3, 3] - self.p,
-            Rotation.from_matrix(T_meas[:3, :3] @ self.R.T).as_rotvec(),
+            fast_matrix_to_rotvec(T_meas[:3, :3] @ self.R.T),
         ])
         H = np.zeros((6, 12))
         H[0:3, 0:3] = np.eye(3)

@@ -16,7 +16,6 @@ publishes); ``StateVector.latency`` is the age of the underlying measurement. A 
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
-from perception.geometry import check_rigid, make_T, matrix_to_quat
+from perception.geometry import check_rigid, fast_matrix_to_quat, make_T
 from perception.modes import FrameVerdict, ModeLogic
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
@@ -86,8 +85,17 @@ def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:
     tau_r = t_ref - f.t
     p_i = f.p + np.outer(tau_i, f.v)
     p_r = f.p + f.v * tau_r
-    rel = Rotation.from_rotvec(np.outer(tau_r - tau_i, f.w))
-    return rel.apply(cloud.points - p_i) + p_r
+    x = cloud.points - p_i
+    w = np.asarray(f.w, dtype=np.float64)
+    rate = float(np.sqrt(w @ w))
+    if rate == 0.0:
+        return x + p_r
+    # Rodrigues about the one axis w / |w|, by the angle rate (tau_r - tau_i) of each point.
+    k = w / rate
+    ang = rate * (tau_r - tau_i)
+    c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
+    kx = np.cross(k, x)
+    return x * c + kx * s + np.outer(x @ k, k) * (1.0 - c) + p_r
 
 
 @dataclass
@@ -404,7 +412,7 @@ class TriDAR:
             self.logic.go(t, Mode.TRACKING, f"acquired (fitness {res.fitness:.2f})")
             out = _Output(self.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
                           bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
-                          filt=copy.deepcopy(self.filter), n_updates=self._n_updates)
+                          filt=self.filter.copy(), n_updates=self._n_updates)
         elif not admitted:
             self.stats.rejected_candidates += 1
         self._outputs.append(out)
@@ -444,8 +452,11 @@ class TriDAR:
         pts = deskew(cloud, f, t_ref)
         T_pred = f.pose_at(t_ref)
         rng_m = float(np.linalg.norm(T_pred[:3, 3]))
+        # On an established track (rates estimated, the last frames accepted) the prediction is
+        # within a few sigma of the answer: ICP starts in its fine phase.
+        settled = self._n_updates >= 3 and self.logic.bad_frames == 0 and self._gate_rejects == 0
         res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
-                  config=self.logic.icp_config_for_range(rng_m))
+                  config=self.logic.icp_config_for_range(rng_m), coarse=not settled)
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
         expected = max(float(np.median(cloud.sigma)), self.pc.measurement_floor_m)
@@ -483,7 +494,7 @@ class TriDAR:
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
-                      t_ref, n, fitness=res.fitness, filt=copy.deepcopy(f), n_updates=self._n_updates)
+                      t_ref, n, fitness=res.fitness, filt=f.copy(), n_updates=self._n_updates)
         bfix = self._bearing_fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         self._outputs.append(out)
@@ -542,7 +553,7 @@ class TriDAR:
         if lost:
             self.stats.losses += 1
             if self.filter.initialized:
-                self._lost_track = copy.deepcopy(self.filter)
+                self._lost_track = self.filter.copy()
             self.filter.reset()
             self._n_updates = 0
             self._search_started = t
@@ -567,7 +578,7 @@ class TriDAR:
         cov = np.eye(12) * INVALID_VARIANCE
         pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
         if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
-            f = copy.deepcopy(out.filt)
+            f = out.filt.copy()
             if self._ego is not None:
                 f.set_ego(self._ego)  # the host's latest rates carry the state to now
             if t > f.t:
@@ -576,7 +587,7 @@ class TriDAR:
             rates_ok = out.n_updates >= 3
             valid_kw.update(position=True, attitude=True, velocity=rates_ok, angular_velocity=rates_ok)
             rng_m = float(np.linalg.norm(fp))
-            kw.update(position=fp, quaternion=matrix_to_quat(fR), range=rng_m,
+            kw.update(position=fp, quaternion=fast_matrix_to_quat(fR), range=rng_m,
                       bearing=np.array([np.arctan2(fp[0], fp[2]), np.arctan2(-fp[1], np.hypot(fp[0], fp[2]))]))
             valid_kw.update(bearing=True, range=True)
             blocks = [slice(0, 3), slice(6, 9)]

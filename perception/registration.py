@@ -26,6 +26,7 @@ and this noise, whatever the solver. Directions in which ``H`` is (nearly) singu
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Literal
@@ -572,7 +573,10 @@ def _directions(directions: npt.ArrayLike | None, P: FloatArray) -> FloatArray:
 # ---------------------------------------------------------------------------------------------
 def _jacobian_rows(s_rel: FloatArray, n_sensor: FloatArray) -> FloatArray:
     """Rows ``A_i = [n_i, s_i x n_i]`` with ``r_i(xi) ~= r_i - A_i xi``, ``s_i`` about the pivot."""
-    return np.hstack([n_sensor, np.cross(s_rel, n_sensor)])
+    A = np.empty((n_sensor.shape[0], 6))
+    A[:, :3] = n_sensor
+    A[:, 3:] = _cross(s_rel, n_sensor)
+    return A
 
 
 def _residual_variance(
@@ -839,6 +843,7 @@ def icp(
     config: ICPConfig | None = None,
     directions: npt.ArrayLike | None = None,
     match_along_rays: bool | None = None,
+    coarse: bool = True,
 ) -> RegistrationResult:
     """Align a scan to the target model by ICP, from an initial pose.
 
@@ -873,6 +878,9 @@ def icp(
             used both to weight the solve and in the covariance, with
             ``f = config.noise_floor_fraction`` and ``sigma_model = config.model_noise_fraction *``
             the model spacing (see :func:`information_matrix`).
+        coarse: start with the coarse phase. False goes straight to the fine phase: for an
+            initial pose already within a few sigma of the answer (a tracking filter's
+            prediction), where the coarse phase costs an iteration and changes nothing.
 
     Returns:
         A :class:`RegistrationResult`; ``converged=False`` with a ``reason`` (and the initial pose)
@@ -939,12 +947,14 @@ def icp(
     R = T[:3, :3].copy()
     t = T[:3, 3].copy()
     step_sigma2 = np.inf
+    prev_step_sigma = np.inf
     stalled = False
-    fine = False
+    fine = not coarse
     prev_cost = np.inf
     converged = False
     reason = ""
     it = 0
+    reuse: _Matches | None = None
     for it in range(1, cfg.max_iterations + 1):
         # Everything per point is in the target frame; only the 6-vector step is rotated.
         q = (P - t) @ R
@@ -953,6 +963,7 @@ def icp(
             mc, q, gate, n_candidates if fine else 1, d_all, back_cos, meth == "point_to_point",
             along_rays,
         )
+        m_raw = m
         if gate_k > 0.0 and m.sel.size > min_pts:
             # Adaptive gate on the median match distance: once the pose is close, a stray
             # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
@@ -996,7 +1007,7 @@ def icp(
             # Linearised about the target origin, not the sensor origin: a finite rotation step
             # then does not swing the target about a lever arm of the full range.
             c = m.foot
-            A = np.hstack([m.normal, _cross(c, m.normal)])
+            A = _jacobian_rows(c, m.normal)
             Aw = A * w[:, None]
             Hm = Aw.T @ A
             g = Aw.T @ r
@@ -1061,18 +1072,33 @@ def icp(
             if step_t < coarse_tol_t and step_r < coarse_tol_r:
                 fine = True
                 prev_cost = np.inf
+                # The fine gate from these matches (the step that follows them is a fraction of
+                # the gate floor), so the first fine iteration already works at its own scale.
+                gate = max(gate_floor, min(gate, 3.0 * _median(m_raw.dist)))
             continue
         new_gate = max(gate_floor, min(gate, 3.0 * _median(m.dist)))
         gate_settled = new_gate >= 0.98 * gate
         gate = new_gate
         small_step = step_t < cfg.translation_tol_m and step_r < cfg.rotation_tol_rad
         # Once a step is a small fraction of a sigma in every direction, further iterations
-        # cannot change the answer.
-        small_step = small_step or step_sigma2 < step_tol2
+        # cannot change the answer. Gauss-Newton on the plane metric contracts about linearly
+        # (each step a fraction rho of the one before), so after a step of s sigmas about
+        # s rho / (1 - rho) remains: when that is below the tolerance, confirming it by another
+        # iteration is not needed.
+        s_k = math.sqrt(step_sigma2)
+        rho = s_k / prev_step_sigma if 0.0 < prev_step_sigma < math.inf else math.inf
+        small_step = small_step or step_sigma2 < step_tol2 or (
+            rho < 0.5 and (s_k * rho / (1.0 - rho)) ** 2 < step_tol2
+        )
+        prev_step_sigma = s_k
         small_change = abs(prev_cost - cost) <= cfg.residual_tol * max(cost, 1e-12)
         prev_cost = cost
         if gate_settled and (small_step or small_change or stalled):
             converged = True
+            # After a sub-tolerance step the matches of this iteration are the final pose's
+            # (same faces; residuals are recomputed), so the final pass need not search again.
+            if small_step and not stalled and meth == "point_to_plane":
+                reuse = m_raw
             break
         if cfg.time_budget_s is not None and time.perf_counter() - t_start > cfg.time_budget_s:
             reason = f"time budget {cfg.time_budget_s} s reached after {it} iterations"
@@ -1081,7 +1107,7 @@ def icp(
         reason = f"not converged after {cfg.max_iterations} iterations"
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    return _finish(P, sig, D, mc, T, gate, cfg, converged, reason, it, t_start, along_rays)
+    return _finish(P, sig, D, mc, T, gate, cfg, converged, reason, it, t_start, along_rays, reuse)
 
 
 def _model_sigma(mc: ModelCloud, cfg: ICPConfig) -> float:
@@ -1103,14 +1129,23 @@ def _finish(
     iterations: int,
     t_start: float,
     along_rays: bool = False,
+    reuse: _Matches | None = None,
 ) -> RegistrationResult:
-    """Final correspondences, fitness and the Cramer-Rao covariance at the returned pose."""
+    """Final correspondences, fitness and the Cramer-Rao covariance at the returned pose.
+
+    ``reuse``: the matches of the last iteration, whose step was below tolerance; their faces
+    are kept (within ``gate``) and only the plane residuals are evaluated at ``T``.
+    """
     n = P.shape[0]
     R = T[:3, :3]
     t = T[:3, 3]
     d_all = D @ R
-    m = _correspond(mc, (P - t) @ R, gate, int(cfg.plane_candidates), d_all, cfg.back_facing_cos,
-                    along_rays=along_rays)
+    if reuse is None:
+        m = _correspond(mc, (P - t) @ R, gate, int(cfg.plane_candidates), d_all,
+                        cfg.back_facing_cos, along_rays=along_rays)
+    else:
+        m = reuse.keep(reuse.dist <= gate)
+        m.r = np.einsum("ij,ij->i", m.normal, (P[m.sel] - t) @ R - m.foot)
     front = np.einsum("ij,ij->i", m.normal, d_all[m.sel]) < cfg.back_facing_cos
     m = m.keep(front)
     n_in = int(m.sel.size)

@@ -73,10 +73,14 @@ def as_fov(fov_rad: float | npt.ArrayLike, name: str = "fov_rad") -> FloatArray:
 
 def angles_to_directions(az: npt.ArrayLike, el: npt.ArrayLike) -> FloatArray:
     """Unit ray directions (N, 3), sensor frame, from mirror angles (N,) [rad] (module convention)."""
-    az = np.asarray(az, dtype=np.float64)
-    el = np.asarray(el, dtype=np.float64)
-    d = np.stack([np.tan(az), -np.tan(el), np.ones_like(az)], axis=-1)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    az, el = np.broadcast_arrays(np.asarray(az, dtype=np.float64), np.asarray(el, dtype=np.float64))
+    x = np.tan(az)
+    y = np.tan(el)
+    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+    d = np.empty((*az.shape, 3))
+    d[..., 0] = x * inv
+    d[..., 1] = -y * inv
+    d[..., 2] = inv
     return d
 
 

@@ -20,6 +20,7 @@ from perception.geometry import (
     fast_cross,
     fast_invert,
     fast_matrix_to_quat,
+    fast_matrix_to_rotvec,
     fast_quat_to_matrix,
     invert,
     make_T,
@@ -76,6 +77,19 @@ def test_fast_matrix_to_quat_every_branch(rotvec: list[float]) -> None:
     assert q[0] >= 0.0
     np.testing.assert_allclose(q, matrix_to_quat(R), rtol=0, atol=TOL)
     np.testing.assert_allclose(fast_quat_to_matrix(q), R, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("scale", [1e-12, 1e-6, 1e-3, 0.3, 3.0, np.pi - 1e-9])
+def test_fast_matrix_to_rotvec_matches_scipy(scale: float) -> None:
+    """Small angles (the filter's innovations, series branch), large ones, and near 180 deg."""
+    rng = np.random.default_rng(7)
+    axes = rng.standard_normal((300, 3))
+    v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * scale * rng.uniform(0.5, 1.0, (300, 1))
+    R = Rotation.from_rotvec(v).as_matrix()
+    out = np.array([fast_matrix_to_rotvec(r) for r in R])
+    np.testing.assert_allclose(out, Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=TOL)
+    if scale < 3.0:
+        np.testing.assert_allclose(out, v, rtol=1e-9, atol=TOL)
 
 
 def test_fast_quat_to_matrix_rejects_zero() -> None:

@@ -28,6 +28,7 @@ from perception.config import MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import check_rigid, fast_matrix_to_quat, make_T
 from perception.modes import FrameVerdict, ModeLogic
+from perception.numeric import median
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
 from perception.scan_patterns import make_pattern, steer_to_region
@@ -294,9 +295,9 @@ class TriDAR:
         c = cloud.points.mean(axis=0)
         r = np.linalg.norm(cloud.points, axis=1)
         t_mid = float(np.mean(cloud.times))
-        rng_m = float(np.median(r))
+        rng_m = median(r)
         # Spread of returns over the target dominates the centroid's range error far out.
-        sigma = float(max(np.std(r) / np.sqrt(len(r)), np.median(cloud.sigma)))
+        sigma = float(max(np.std(r) / np.sqrt(len(r)), median(cloud.sigma)))
         self.range_filter.update(t_mid, rng_m, sigma)
         self._bearing = (c, t_mid)
         bearing = np.array([np.arctan2(c[0], c[2]), np.arctan2(-c[1], np.hypot(c[0], c[2]))])
@@ -369,7 +370,7 @@ class TriDAR:
         constraint = self._constraint()
         sigma = cloud.sigma
         icp_cfg = self.logic.icp_config_for_range(out.range_m)
-        expected = max(float(np.median(sigma)), self.pc.measurement_floor_m)
+        expected = max(median(sigma), self.pc.measurement_floor_m)
         res, admitted, verdict, from_track = None, False, None, None
         lost = self._lost_track
         if lost is not None and t_ref - lost.t <= self.pc.reacquire_window_s:
@@ -459,7 +460,7 @@ class TriDAR:
                   config=self.logic.icp_config_for_range(rng_m), coarse=not settled)
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
-        expected = max(float(np.median(cloud.sigma)), self.pc.measurement_floor_m)
+        expected = max(median(cloud.sigma), self.pc.measurement_floor_m)
         # With a running filter the consistency test is its innovation gate, which weighs each
         # direction by the registration's covariance: a pose that slides along a direction the
         # geometry leaves unobservable (degenerate_axes) is not a jump, it is uninformative.

@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from perception.config import ICPConfig
 from perception.geometry import check_rigid, kabsch, se3_log, skew
+from perception.numeric import median
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -774,16 +775,6 @@ def _samples_match(mc: ModelCloud, q: FloatArray, rows: npt.NDArray[np.intp], ga
     return _Matches(sel, dist[ok], nrm, foot, r)
 
 
-def _median(x: FloatArray) -> float:
-    """``np.median`` of a 1-D array (the same value) without its per-call overhead."""
-    n = x.size
-    k = n // 2
-    if n % 2:
-        return float(np.partition(x, k)[k])
-    part = np.partition(x, (k - 1, k))
-    return float((part[k - 1] + part[k]) / 2.0)
-
-
 def _correspond(
     mc: ModelCloud,
     q: FloatArray,
@@ -923,13 +914,13 @@ def icp(
 
     floor_frac = float(cfg.noise_floor_fraction)
     model_sig = _model_sigma(mc, cfg)
-    gate_floor = max(cfg.min_correspondence_m, 4.0 * float(np.median(sig)), 1.5 * mc.spacing)
+    gate_floor = max(cfg.min_correspondence_m, 4.0 * median(sig), 1.5 * mc.spacing)
     gate = max(cfg.max_correspondence_m, gate_floor)
     trim = float(cfg.trim_fraction)
     gate_k = float(cfg.gate_median_factor)
     # With exact face distances the model spacing is no error source: the median gate may go
     # down to the noise (strays a few cm off a face are then still rejected).
-    median_floor = (max(cfg.min_correspondence_m, 4.0 * float(np.median(sig)))
+    median_floor = (max(cfg.min_correspondence_m, 4.0 * median(sig))
                     if mc.grid is not None else gate_floor)
     kernel_k = float(cfg.kernel_scale)
     back_cos = float(cfg.back_facing_cos)
@@ -968,7 +959,7 @@ def icp(
             # Adaptive gate on the median match distance: once the pose is close, a stray
             # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
             # keeps it while fewer than trim_fraction of the points are strays).
-            thr = max(median_floor, gate_k * _median(m.dist))
+            thr = max(median_floor, gate_k * median(m.dist))
             if thr < gate:
                 far = m.dist > thr
                 if far.any() and m.sel.size - int(far.sum()) >= min_pts:
@@ -999,7 +990,7 @@ def icp(
             # Soft (Cauchy) down-weighting on the distance, scaled by the current spread: parts
             # missing from the model cannot drag the coarse solution, a misaligned face still pulls.
             w = w * _kernel_weights(
-                m.dist / max(gate_floor, 1.5 * _median(m.dist)), "cauchy", 1.0
+                m.dist / max(gate_floor, 1.5 * median(m.dist)), "cauchy", 1.0
             )
         cost = float(np.sum(w * r * r) / np.sum(w * var))
         Hm = None
@@ -1074,9 +1065,9 @@ def icp(
                 prev_cost = np.inf
                 # The fine gate from these matches (the step that follows them is a fraction of
                 # the gate floor), so the first fine iteration already works at its own scale.
-                gate = max(gate_floor, min(gate, 3.0 * _median(m_raw.dist)))
+                gate = max(gate_floor, min(gate, 3.0 * median(m_raw.dist)))
             continue
-        new_gate = max(gate_floor, min(gate, 3.0 * _median(m.dist)))
+        new_gate = max(gate_floor, min(gate, 3.0 * median(m.dist)))
         gate_settled = new_gate >= 0.98 * gate
         gate = new_gate
         small_step = step_t < cfg.translation_tol_m and step_r < cfg.rotation_tol_rad

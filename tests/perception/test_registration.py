@@ -339,8 +339,8 @@ def test_face_grid_matches_trimesh_closest_point():
 
 
 def test_partition_median_equals_numpy_median_bit_for_bit() -> None:
-    """The gate's median must not change a single ICP result (it only drops per-call overhead)."""
-    from perception.registration import _median
+    """The hot path's median must not change a single result (it only drops per-call overhead)."""
+    from perception.numeric import median as _median
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 3, 4, 7, 10, 699, 700):
@@ -349,6 +349,8 @@ def test_partition_median_equals_numpy_median_bit_for_bit() -> None:
             assert _median(x) == float(np.median(x))
             x[rng.integers(n)] = x[0]  # ties
             assert _median(x) == float(np.median(x))
+    with pytest.raises(ValueError, match="empty"):
+        _median(np.zeros(0))
 
 
 def _mahalanobis2(Ta: npt.NDArray[np.float64], Tb: npt.NDArray[np.float64],

@@ -326,6 +326,7 @@ def refine_pose(
     back_facing_cos: float = 0.3,
     step_tol_sigma: float = 0.05,
     outline_axes: tuple[int, ...] = (0, 1, 5),
+    reach_px: int = 3,
 ) -> RegistrationResult:
     """Gauss-Newton on the pose with surface rows and outline rows together.
 
@@ -357,6 +358,8 @@ def refine_pose(
             different depths (bus face and wing, 0.19 m apart) would tilt the pose by their
             quantisation difference over that depth, overriding the surface's far better pitch
             and yaw.
+        reach_px: pixels either side of a pair searched for the model's outline on the first
+            iteration (one pixel afterwards).
 
     Returns:
         :class:`RegistrationResult` with the refined pose and the joint covariance.
@@ -396,7 +399,8 @@ def refine_pose(
         cos = np.einsum("ij,ij->i", ns, D[found])
         var_s = sigma**2 * (cos * cos + noise_floor_fraction**2)
         As = np.hstack([ns, np.cross(foot - t, ns)])
-        orow = outline_rows(target, model, T, da, db, geom)
+        # After the first step the model's outline is within a pixel of where it will end.
+        orow = outline_rows(target, model, T, da, db, geom, reach_px=reach_px if it == 1 else 1)
         A = np.vstack([As, orow.A * axis_mask])
         r = np.concatenate([rs, orow.r])
         var = np.concatenate([var_s, orow.var])

@@ -20,7 +20,21 @@ global method there) and then run frame to frame from its previous estimate:
 - ``P2Plane+CV+rays`` (extra row): our ICP as the tumbling-target mission runs it on this target —
   each point matched to the face its measured ray crosses (``match_along_rays``) — from a
   constant-velocity prediction (the last frame-to-frame motion repeated, what the pipeline's
-  filter supplies) on the same uniform subset as ``P2Plane``.
+  filter supplies) on the same uniform subset as ``P2Plane``;
+- ``P2Plane+CV+outline`` (extra row): ``P2Plane+CV+rays``, then
+  :func:`perception.silhouette.refine_pose`: one Gauss-Newton on the surface rows of the same
+  subset and on the flash frame's *outline* (every valid pixel next to an invalid one: the model's
+  outline, found by casting rays along the pair, must cross between them). The CYGNSS bus and
+  wings are plates seen nearly face-on, so point-to-plane ICP has next to no information about
+  the in-plane position and the roll (its Cramer-Rao bound flags ``tx, ty, rz`` degenerate on most
+  frames; they were the 5-8 mm and 0.24 deg spikes of ``P2Plane+CV+rays``); the outline fixes
+  them, to the pixel quantisation of the edges (``--outline-points``, ``--outline-pairs``);
+- ``P2Plane+EKF+outline`` (extra row): the same refinement (from the prediction, no ICP first)
+  inside the pipeline's :class:`perception.filter.PoseFilter` (default noise densities), which
+  fuses each frame's pose with the refinement's covariance. That covariance counts an edge
+  running with the pixel grid (roll 0, +-45, +-90 deg: all edges of a box) once, not once per
+  pixel, so on those frames (one flash frame places each such edge only to a pixel: 37 mm at
+  53 m) the filter leans on its prediction.
 
 Seed 003's figures: < 0.5 deg and ~1 cm, ~200 ms per frame on ~5,000 points.
 Our goals: max rotation error <= 0.2 deg, max position error <= 5 mm, <= 50 ms per frame.
@@ -260,6 +274,7 @@ class OutlineRayPlaneICP(PredictedRayPlaneICP):
         self.target, self.geometry, self.max_pairs = target, geometry, int(max_pairs)
         self._cloud: Any = None
         self._idx: npt.NDArray[np.intp] | None = None
+        self.skip_icp = False  # refine straight from the prediction (FilteredOutlineICP)
 
     def _subset(self, cloud: Any) -> FloatArray:
         idx = self._indices(cloud)
@@ -273,16 +288,18 @@ class OutlineRayPlaneICP(PredictedRayPlaneICP):
         from perception.silhouette import refine_pose
 
         t0 = time.perf_counter()
-        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
-                  directions=self.directions)
-        ref = refine_pose(self._cloud, self.target, self.model, res.T_sensor_target,
-                          self.geometry, sigma=self.sigma, surface_idx=self._idx,
-                          max_pairs=self.max_pairs)
+        converged = True
+        if not self.skip_icp:
+            res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
+                      directions=self.directions)
+            T0, converged = res.T_sensor_target, res.converged
+        ref = refine_pose(self._cloud, self.target, self.model, T0, self.geometry,
+                          sigma=self.sigma, surface_idx=self._idx, max_pairs=self.max_pairs)
         dt = time.perf_counter() - t0
         self.T = ref.T_sensor_target
         self.result = ref
         return Step(ref.T_sensor_target, ref.n_points, float("nan"), dt,
-                    res.converged and ref.converged)
+                    converged and ref.converged)
 
 
 class FilteredOutlineICP(OutlineRayPlaneICP):
@@ -327,6 +344,7 @@ class FilteredOutlineICP(OutlineRayPlaneICP):
             self.t_prev = t
             return step
         t0 = time.perf_counter()
+        self.skip_icp = True
         step = self._run(self._subset(cloud), self.filter.pose_at(t))
         if not self.filter.update(t, step.T, self.result.covariance).accepted:
             self.rejected += 1

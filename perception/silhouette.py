@@ -60,6 +60,13 @@ __all__ = [
 ]
 
 
+#: A surface match counts when the point's ray crosses the face within this of its edges [m].
+_CROSSING_TOL_M = 1e-3
+
+#: Silhouette planes whose normals agree to this [rad] are one edge line (collinear edges).
+_LINE_TOLERANCE_RAD = 2e-4
+
+
 @dataclass(frozen=True)
 class FlashGeometry:
     """What the estimator knows of a flash LiDAR: its pixel rays and when a pixel returns.
@@ -269,7 +276,11 @@ def outline_rows(
     w_px = np.linalg.norm(step, axis=1) * rng
     proj = np.abs(np.einsum("ij,ij->i", n, step)) / np.linalg.norm(step, axis=1)
     period = w_px * np.maximum(proj, 0.05 ** 0.5)
-    var = _edge_quantisation_variance(face * 4 + e_row, u[ok], period)
+    # One edge line = one silhouette plane: collinear facet edges (the two wings' long edges)
+    # share their pixels' phases as much as one edge's pixels do.
+    line = np.unique(np.round(n / _LINE_TOLERANCE_RAD).astype(np.int64), axis=0,
+                     return_inverse=True)[1].reshape(-1)
+    var = _edge_quantisation_variance(line, u[ok], period)
     A = np.hstack([n, np.cross(s - t, n)])
     return OutlineRows(A, r, var, s, n)
 
@@ -324,7 +335,7 @@ def refine_pose(
     kernel_scale: float = 2.5,
     noise_floor_fraction: float = 0.2,
     back_facing_cos: float = 0.3,
-    step_tol_sigma: float = 0.05,
+    step_tol_sigma: float = 0.2,
     outline_axes: tuple[int, ...] = (0, 1, 5),
     reach_px: int = 3,
 ) -> RegistrationResult:
@@ -350,7 +361,8 @@ def refine_pose(
         kernel_scale: Huber threshold [sigmas].
         noise_floor_fraction: ``f`` above.
         back_facing_cos: faces whose normal . ray exceeds this are not matched.
-        step_tol_sigma: stop once a step is below this many sigmas (Mahalanobis length).
+        step_tol_sigma: stop once a step is below this many sigmas (Mahalanobis length; the
+            outline pairs are re-matched each step, which leaves a jitter of ~0.1 sigma).
         outline_axes: twist components (of ``tx, ty, tz, rx, ry, rz``) the outline rows inform;
             default the image-plane ones (``tx, ty, rz``). The outline's error is pixel
             quantisation, the same for every pair along an edge that runs with the pixel grid
@@ -390,13 +402,24 @@ def refine_pose(
         R, t = T[:3, :3], T[:3, 3]
         q = (P - t) @ R
         found, dist, face, v = grid.nearest(q, D @ R, back_facing_cos, True)
-        keep = dist <= gate_m
-        found, face, v = found[keep], face[keep], v[keep]
-        nt = grid.planes[face, 0, :3]
+        pl = grid.planes[face]
+        nt = pl[:, 0, :3]
+        dt_ = D[found] @ R
+        cos = np.einsum("ij,ij->i", nt, dt_)
+        # A point whose ray does not cross its face inside the face's edges lies beyond the
+        # model's outline at this pose (nearest-face fallback); and a return never comes from a
+        # face seen beyond the grazing limit. Such a point just past a face-on plate's edge would
+        # be matched to the edge-on side face, whose plane would pin the in-plane position with
+        # a sigma the noise floor makes far too small. The outline rows carry what it knows.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = -v[:, 0] / cos
+        edge_at_crossing = v[:, 1:] + lam[:, None] * np.einsum("kij,kj->ki", pl[:, 1:, :3], dt_)
+        crosses = np.max(edge_at_crossing, axis=1) <= _CROSSING_TOL_M
+        keep = (dist <= gate_m) & (-cos >= geom.cos_grazing) & crosses
+        found, v, nt, cos = found[keep], v[keep], nt[keep], cos[keep]
         ns = nt @ R.T
         rs = v[:, 0]
         foot = (q[found] - rs[:, None] * nt) @ R.T + t
-        cos = np.einsum("ij,ij->i", ns, D[found])
         var_s = sigma**2 * (cos * cos + noise_floor_fraction**2)
         As = np.hstack([ns, np.cross(foot - t, ns)])
         # After the first step the model's outline is within a pixel of where it will end.

@@ -63,8 +63,8 @@ __all__ = [
 #: A surface match counts when the point's ray crosses the face within this of its edges [m].
 _CROSSING_TOL_M = 1e-3
 
-#: Silhouette planes whose normals agree to this [rad] are one edge line (collinear edges).
-_LINE_TOLERANCE_RAD = 2e-4
+#: Outline rows whose image-plane normals agree to this [rad] are one group of parallel edges.
+_PARALLEL_TOLERANCE_RAD = math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -276,42 +276,49 @@ def outline_rows(
     w_px = np.linalg.norm(step, axis=1) * rng
     proj = np.abs(np.einsum("ij,ij->i", n, step)) / np.linalg.norm(step, axis=1)
     period = w_px * np.maximum(proj, 0.05 ** 0.5)
-    # One edge line = one silhouette plane: collinear facet edges (the two wings' long edges)
-    # share their pixels' phases as much as one edge's pixels do.
-    line = np.unique(np.round(n / _LINE_TOLERANCE_RAD).astype(np.int64), axis=0,
-                     return_inverse=True)[1].reshape(-1)
-    var = _edge_quantisation_variance(line, u[ok], period)
+    # Parallel edges move together: a shift of the target along their normal moves every
+    # crossing's phase by the same amount, so they are one group (signed by their side).
+    theta = np.arctan2(n[:, 1], n[:, 0])
+    n_bins = round(math.pi / _PARALLEL_TOLERANCE_RAD)
+    direction = np.mod(np.rint(np.mod(theta, math.pi) / _PARALLEL_TOLERANCE_RAD), n_bins)
+    side = np.where(np.cos(theta - direction * _PARALLEL_TOLERANCE_RAD) >= 0.0, 1.0, -1.0)
+    var = _edge_quantisation_variance(direction.astype(np.int64), u[ok], period, side)
     A = np.hstack([n, np.cross(s - t, n)])
     return OutlineRows(A, r, var, s, n)
 
 
-def _edge_quantisation_variance(edge: npt.NDArray[np.int64], u: FloatArray, period: FloatArray,
-                                n_offsets: int = 32) -> FloatArray:
-    """Per-row variance [m^2] that gives each model edge the information its pairs really carry.
+def _edge_quantisation_variance(group: npt.NDArray[np.int64], u: FloatArray, period: FloatArray,
+                                side: FloatArray | None = None, n_offsets: int = 32
+                                ) -> FloatArray:
+    """Per-row variance [m^2] that gives each group of parallel edges the information its pairs
+    really carry.
 
     A pair's error is its crossing's position between the two pixels (period ``period`` [m],
     normal to the edge), uniform over the period: variance ``period^2 / 12`` if the pairs were
     independent. They are not: along an edge, the crossing phases ``u`` follow the edge's slope
     over the pixel grid, and an edge that runs with the grid (or at 45 deg) puts every pair at the
-    same phase, so one unknown sub-pixel offset moves them all together. Shifting the edge by an
-    unknown offset ``c`` (uniform over a period) shifts every phase; the variance over ``c`` of
-    the edge's mean error is what the edge tells. Each of its ``n`` rows gets ``n`` times that
-    (never less than its own ``period^2 / 12``), so that the rows of one edge together weigh as
-    much as that one mean.
+    same phase; parallel edges of a rigid body keep their phase differences. Shifting the target
+    by an unknown offset ``c`` (uniform over a period) along the group's normal moves every
+    phase by ``side c / period`` (``side`` +-1: which way each row's normal points); the variance
+    over ``c`` of the group's mean error is what the group tells. Each of its ``n`` rows gets
+    ``n`` times that (never less than its own ``period^2 / 12``), so that the rows of one group
+    together weigh as much as that one mean.
     """
-    if edge.size == 0:
+    if group.size == 0:
         return np.zeros(0)
-    _, g = np.unique(edge, return_inverse=True)
+    sd = np.ones_like(u) if side is None else side
+    _, g = np.unique(group, return_inverse=True)
     n_g = np.bincount(g).astype(np.float64)
     p_max = np.zeros(n_g.size)
     np.maximum.at(p_max, g, period)
     c = (np.arange(n_offsets) + 0.5) / n_offsets * p_max[g][:, None]  # (K, n_offsets) [m]
-    err = (np.mod(u[:, None] + c / period[:, None], 1.0) - 0.5) * period[:, None]
+    err = sd[:, None] * (np.mod(u[:, None] + sd[:, None] * c / period[:, None], 1.0) - 0.5)
+    err *= period[:, None]
     mean = np.zeros((n_g.size, n_offsets))
     np.add.at(mean, g, err)
     mean /= n_g[:, None]
-    v_edge = np.var(mean, axis=1)
-    return np.maximum(n_g[g] * v_edge[g], period**2 / 12.0)
+    v_group = np.var(mean, axis=1)
+    return np.maximum(n_g[g] * v_group[g], period**2 / 12.0)
 
 
 def _exp_so3(phi: FloatArray) -> FloatArray:

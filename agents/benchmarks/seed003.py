@@ -30,7 +30,8 @@ global method there) and then run frame to frame from its previous estimate:
   frames; they were the 5-8 mm and 0.24 deg spikes of ``P2Plane+CV+rays``); the outline fixes
   them, to the pixel quantisation of the edges (``--outline-points``, ``--outline-pairs``);
 - ``P2Plane+EKF+outline`` (extra row): the same refinement (from the prediction, no ICP first)
-  inside the pipeline's :class:`perception.filter.PoseFilter` (default noise densities), which
+  inside the pipeline's :class:`perception.filter.PoseFilter` (the pipeline's default process
+  noise), which
   fuses each frame's pose with the refinement's covariance. That covariance counts an edge
   running with the pixel grid (roll 0, +-45, +-90 deg: all edges of a box) once, not once per
   pixel, so on those frames (one flash frame places each such edge only to a pixel: 37 mm at
@@ -308,18 +309,23 @@ class FilteredOutlineICP(OutlineRayPlaneICP):
     A single frame cannot place an edge that runs with the pixel grid better than its pixel
     pitch (every pair along it has the same sub-pixel phase; at 53 m that is +-19 mm per edge,
     and a box-shaped target at roll 0, +-45 or +-90 deg has only such edges).
-    :class:`perception.filter.PoseFilter` (constant velocity and rate, its default noise
-    densities) fuses each frame's refined pose with the refinement's covariance, which counts
-    such an edge once; the filter's posterior is the estimate and its prediction starts the next
-    frame. The filter starts on frame 2 from the two first poses (their difference as velocity
-    and rate); frame 2 is predicted like :class:`SparsePlaneICP`.
+    :class:`perception.filter.PoseFilter` (constant velocity and rate, the pipeline's default
+    process noise from :class:`~perception.config.PipelineConfig`) fuses each frame's refined
+    pose with the refinement's covariance, which counts such a group of parallel edges once; the
+    filter's posterior is the estimate and its prediction starts the next frame (no ICP: the
+    refinement's surface rows take it from there). The filter starts on frame 2 from the two
+    first poses (their difference as velocity and rate); frame 2 is predicted like
+    :class:`SparsePlaneICP`. With 100 times the acceleration noise (its CV prediction barely
+    trusted) experiment 2 ends near the single-frame rows' ~10 mm at the grid-aligned frames.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
+        from perception.config import PipelineConfig
         from perception.filter import PoseFilter
 
         super().__init__(*args, **kwargs)
-        self.filter = PoseFilter()
+        pc = PipelineConfig()
+        self.filter = PoseFilter(pc.process_noise_accel**2, pc.process_noise_angacc**2)
         self.t_prev = 0.0
         self.rejected = 0
 

@@ -182,13 +182,15 @@ def _recoveries(result: dict) -> tuple[int, int, list[float]]:
     """Restarts and losses followed by a return to tracking: (events, recovered, times)."""
     tri = result["tri"]
     ev = tri.logic.events
-    drops = [e for e in ev if e.source == Mode.TRACKING and e.target != Mode.TRACKING]
+    # By event order, not time: a restart reacquired from the track's own prediction returns to
+    # tracking at the same instant it left.
+    drops = [i for i, e in enumerate(ev) if e.source == Mode.TRACKING and e.target != Mode.TRACKING]
     recovered, times = 0, []
-    for d in drops:
-        back = [e for e in ev if e.t > d.t and e.target == Mode.TRACKING]
-        if back:
+    for i in drops:
+        back = next((e for e in ev[i + 1:] if e.target == Mode.TRACKING), None)
+        if back is not None:
             recovered += 1
-            times.append(back[0].t - d.t)
+            times.append(back.t - ev[i].t)
     return len(drops), recovered, times
 
 

@@ -31,3 +31,25 @@ def test_port_errors_are_reported_and_smaller_than_centre_of_mass_errors() -> No
     # 0.3-0.7 deg RMS over 32 frames, so the ratio moves with the seed).
     assert b["port_rms_mm"] < 0.7 * b["pos_rms_mm"]
     assert b["port_rms_mm"] < 25.0 and b["port_max_mm"] < 50.0
+
+
+def test_recoveries_count_same_instant_reacquisitions() -> None:
+    """A planned restart reacquired from the track's own prediction leaves and re-enters tracking
+    at one instant; it is recovered at once, not when the next drop recovers (a bug that counted
+    the last restart of the V-bar replay as unrecovered and reported 238 s median reacquisition)."""
+    import types
+
+    from agents.benchmarks.pipeline import _recoveries
+    from perception.modes import ModeEvent
+    from perception.state import Mode
+
+    T, S, B = Mode.TRACKING, Mode.SEARCH, Mode.BEARING
+    ev = [ModeEvent(0.0, B, S, ""), ModeEvent(1.0, S, T, ""),
+          ModeEvent(300.0, T, S, "planned restart"), ModeEvent(300.0, S, T, "acquired"),
+          ModeEvent(450.0, T, S, "loss"), ModeEvent(456.2, S, T, "acquired"),
+          ModeEvent(600.0, T, S, "planned restart"), ModeEvent(600.0, S, T, "acquired"),
+          ModeEvent(700.0, T, S, "loss")]
+    result = {"tri": types.SimpleNamespace(logic=types.SimpleNamespace(events=ev))}
+    drops, recovered, times = _recoveries(result)
+    assert (drops, recovered) == (4, 3)
+    np.testing.assert_allclose(times, [0.0, 6.2, 0.0])

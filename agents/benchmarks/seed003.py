@@ -415,7 +415,9 @@ class Run:
 
 
 def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse.Namespace,
-                   rng: np.random.Generator) -> dict[str, Tracker]:
+                   experiment: int) -> dict[str, Tracker]:
+    """The trackers of ``names``, each drawing its point subsets from its own generator, seeded by
+    ``(seed, experiment, method)``: a row's numbers do not depend on which other rows run."""
     from perception.config import ICPConfig
     from perception.linetrack import LineRollTracker, seed003_icp_config
     from perception.registration import prepare_model
@@ -423,6 +425,7 @@ def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse
     sigma = flash_cfg.range_error_m / math.sqrt(3.0)
     out: dict[str, Tracker] = {}
     for name in names:
+        rng = np.random.default_rng([args.seed, experiment, METHODS.index(name)])
         if name == "ICP":
             cfg = seed003_icp_config(sigma)
             out[name] = PlainICP(prepare_model(target, cfg.model_points), sigma, cfg)
@@ -467,7 +470,7 @@ def run_experiment(experiment: int, args: argparse.Namespace) -> dict[str, Run]:
     truth = [T_from_seed_pose(p, a) for p, a in zip(pos, rpy)]
     clouds = [lidar.capture(target, T, rng, t=0.2 * k) for k, T in enumerate(truth)]
     T_init = perturb(truth[0], rng, args.init_error_deg, args.init_error_m)
-    trackers = _make_trackers(args.methods, target, flash_cfg, args, rng)
+    trackers = _make_trackers(args.methods, target, flash_cfg, args, experiment)
     runs: dict[str, Run] = {}
     for name, tracker in trackers.items():
         run = Run(name, experiment, pos[:, 0].copy())

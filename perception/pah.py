@@ -49,6 +49,7 @@ excludes are never tried. Constrained acquisition costs a small fraction of the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -1060,7 +1061,12 @@ class PAHDatabase:
                     & constraint.position_ok(Ts[:, :3, 3], slack_m=0.1)]
             if Ts.shape[0] == 0:
                 return []
-        fit, _, _ = self._verify(scan, Ts, mc, free_space=False)
+        # A near-symmetry maps the surface onto itself only to within _SYMMETRY_GATE_M (a turn
+        # fitted to the whole model, wing and all, is a few cm and degrees off the turn of the
+        # part the scan sees): judged with the plain gate, the alternative that is the truth can
+        # fit a fifth of the scan before its short ICP and fit all of it after.
+        loose = dataclasses.replace(scan, gate=scan.gate + _SYMMETRY_GATE_M)
+        fit, _, _ = self._verify(loose, Ts, mc, free_space=False)
         order = np.argsort(-fit, kind="stable")[:_ALTERNATIVES_SCREENED]
         starts = [Ts[i] for i in order if fit[i] >= 0.5 * h.fitness]
         return self._screen(scan, starts, known, mc, icp_cfg)

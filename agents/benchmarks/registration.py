@@ -38,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acq-cases", type=int, default=200, help="acquisition cases per target")
     parser.add_argument("--no-acquisition", action="store_true", help="skip the PAH benchmark")
     parser.add_argument("--no-tracking", action="store_true", help="skip the ICP tracking benchmark")
+    parser.add_argument("--acq-log", default=None, metavar="PATH",
+                        help="write one JSON line per acquisition case and method (errors, reason)")
+    parser.add_argument("--acq-only", default=None, metavar="CASES",
+                        help="run only these acquisition case numbers (comma-separated)")
 
 
 def _peers(model_pts: np.ndarray, model_nrm: np.ndarray) -> dict[str, Any]:
@@ -310,7 +314,17 @@ def run_acquisition(args: argparse.Namespace) -> None:
     from perception.sensors import TriDARSensor
     from perception.targets import load_target
 
+    import json
+
+    from perception.geometry import pose_error
+
     n_cases = 20 if args.quick else int(args.acq_cases)
+    only = getattr(args, "acq_only", None)
+    case_ids = (
+        [int(c) for c in str(only).split(",") if c.strip()] if only else list(range(n_cases))
+    )
+    log_path = getattr(args, "acq_log", None)
+    log = open(log_path, "w") if log_path else None  # noqa: SIM115 - closed at the end
     sensor = TriDARSensor(SensorConfig())
     rows = []
     for name in ("cubesat", "cygnss"):
@@ -326,7 +340,7 @@ def run_acquisition(args: argparse.Namespace) -> None:
         stats: dict[str, tuple[list[float], list[float], list[bool]]] = {
             k: ([], [], []) for k in ("pah unconstrained", "pah constrained", "open3d ransac+fpfh")
         }
-        for case in range(n_cases):
+        for case in case_ids:
             rng = np.random.default_rng([args.seed + 1000, case])
             R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
             T_true = make_T(R, [0.0, 0.0, rng.uniform(range_lo, range_hi)])
@@ -341,6 +355,16 @@ def run_acquisition(args: argparse.Namespace) -> None:
                 stats[key][1].append(time.process_time() - c0)
                 stats[key][0].append(res.time_s)
                 stats[key][2].append(_acq_success(target, res.T_sensor_target, T_true))
+                if log is not None:
+                    e_m, e_deg = pose_error(res.T_sensor_target, T_true)
+                    log.write(json.dumps({
+                        "target": name, "case": case, "method": key, "ok": stats[key][2][-1],
+                        "e_m": float(e_m), "e_deg": float(e_deg), "t_s": res.time_s,
+                        "range_m": float(T_true[2, 3]), "n_points": int(len(cloud.points)),
+                        "fitness": float(res.fitness), "converged": bool(res.converged),
+                        "iterations": int(res.iterations), "reason": res.reason,
+                    }) + "\n")
+                    log.flush()
             if peer is not None:
                 t0, c0 = time.perf_counter(), time.process_time()
                 try:
@@ -367,6 +391,8 @@ def run_acquisition(args: argparse.Namespace) -> None:
                 "cpu_med_s": float(np.median(cpu)),
                 "t_vs_pah": tm.median / base,
             })
+    if log is not None:
+        log.close()
     print()
     print("Acquisition (PAH), random attitudes (cubesat 2-10 m, cygnss 5-50 m), TriDAR scans steered"
           " on the whole target; success: < 5 cm and < 2 deg (ADD-S < 5 cm for symmetric targets)")

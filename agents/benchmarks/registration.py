@@ -320,7 +320,7 @@ def run_acquisition(args: argparse.Namespace) -> None:
     from perception.targets import load_target
 
     n_cases = 20 if args.quick else int(args.acq_cases)
-    n_scans = int(getattr(args, "acq_scans", 1) or 1)
+    n_scans = int(getattr(args, "acq_scans", 1))
     if n_scans < 1:
         raise ValueError(f"--acq-scans={n_scans}; expected >= 1")
     only = getattr(args, "acq_only", None)
@@ -382,7 +382,7 @@ def run_acquisition(args: argparse.Namespace) -> None:
                     log.write(json.dumps({
                         "target": name, "case": case, "method": key, "ok": stats[key][2][-1],
                         "e_m": float(e_m), "e_deg": float(e_deg), "t_s": res.time_s,
-                        "range_m": float(T_true[2, 3]), "n_points": len(cloud.points),
+                        "range_m": float(T_true[2, 3]), "n_points": res.n_points,
                         "fitness": float(res.fitness), "converged": bool(res.converged),
                         "iterations": int(res.iterations), "reason": res.reason,
                     }) + "\n")

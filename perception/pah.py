@@ -321,6 +321,7 @@ class _Hypothesis:
         expanded: its near-symmetric alternatives have been verified too.
         settled: its short ICP converged (an unsettled pose, still sliding along a weakly
             observed direction, scores below what it would reach).
+        polished: refined by a full ICP on every point (:meth:`PAHDatabase._polish`).
     """
 
     T: FloatArray
@@ -329,6 +330,7 @@ class _Hypothesis:
     free_space: float
     expanded: bool = False
     settled: bool = True
+    polished: bool = False
 
     @property
     def score(self) -> float:
@@ -853,7 +855,11 @@ class PAHDatabase:
         # The measured rays when given, else the lines of sight: ICP matches each point to the
         # face its ray crosses, and the free-space test casts them.
         rays = P / rng_norm[:, None] if directions is None else np.ascontiguousarray(D_all[ok])
-        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
+        # The short screening ICP only has to reach a hypothesis's basin: on a dense (pooled)
+        # scan a random subset serves; verification and the final ICP use every point.
+        screen = (np.sort(rng.choice(n, size=_SCREEN_POINTS, replace=False))
+                  if n > _SCREEN_POINTS else None)
+        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M, screen)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
         # Polygon vertices come from points with scan neighbours: a stray return floats alone,
@@ -926,6 +932,12 @@ class PAHDatabase:
             if best is not None and not best.expanded:
                 best.expanded = True
                 hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint)
+                best = _best(hyps, constraint)
+            # A leader whose short ICP was still sliding may explain the scan once settled:
+            # polish it on every point before paying for another polygon.
+            if (best is not None and not best.settled and not best.polished
+                    and not best.clean(cfg.accept_fitness, n)):
+                self._polish(scan, best, mc)
                 best = _best(hyps, constraint)
             if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
@@ -1071,9 +1083,10 @@ class PAHDatabase:
         """Short ICP from each start pose, then one batched verification of the distinct results."""
         Ts: list[FloatArray] = []
         settled: list[bool] = []
+        sub = slice(None) if scan.screen is None else scan.screen
+        P, sig, rays = scan.P[sub], scan.sigma[sub], scan.rays[sub]
         for T0 in starts:
-            r = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
-                    match_along_rays=True)
+            r = icp(P, mc, T0, sigma=sig, config=icp_cfg, directions=rays, match_along_rays=True)
             T = r.T_sensor_target
             if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
                 Ts.append(T)
@@ -1083,6 +1096,19 @@ class PAHDatabase:
         fit, like, fs = self._verify(scan, np.stack(Ts), mc)
         return [_Hypothesis(T, float(a), float(b), float(c), settled=ok)
                 for T, a, b, c, ok in zip(Ts, fit, like, fs, settled)]
+
+    def _polish(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
+        """Full ICP of a hypothesis on every scan point, verified; updates ``h`` in place.
+
+        The short screening ICP (12 iterations, on a subset of a large scan) can leave a pose a
+        few degrees short of its basin's bottom, where a tight noise gate (triangulation range)
+        sees points behind the surface; settled, it may explain the scan outright.
+        """
+        r = icp(scan.P, mc, h.T, sigma=scan.sigma, directions=scan.rays, match_along_rays=True)
+        fit, like, fs = self._verify(scan, r.T_sensor_target[None], mc)
+        h.T = r.T_sensor_target
+        h.fitness, h.likelihood, h.free_space = float(fit[0]), float(like[0]), float(fs[0])
+        h.settled, h.polished = bool(r.converged), True
 
     def _alternatives(
         self,
@@ -1293,6 +1319,8 @@ _FULL_CHECK = 16
 # Distinct hypotheses per polygon polished by a short ICP, and that ICP's iterations.
 _SCREEN_PER_POLYGON = 3
 _SCREEN_ICP_ITERATIONS = 12
+# ... on at most this many scan points (a random subset of a larger scan).
+_SCREEN_POINTS = 500
 # Free-space test: a point further than 3 sigma + this [m] behind the model surface along its
 # ray is a violation (the margin absorbs mixed returns of the beam footprint at silhouettes).
 _FREE_SPACE_MARGIN_M = 0.02
@@ -1338,6 +1366,7 @@ class _Scan:
         rays: (n, 3) unit ray directions.
         gate: (n,) inlier distance to the model surface [m] (noise plus model sampling).
         margin: (n,) depth behind the model surface beyond which a point violates free space [m].
+        screen: indices of the points the short screening ICP runs on (None: all of them).
     """
 
     P: FloatArray
@@ -1346,6 +1375,7 @@ class _Scan:
     rays: FloatArray
     gate: FloatArray
     margin: FloatArray
+    screen: IntArray | None = None
 
 
 def _cube_group() -> FloatArray:

@@ -25,16 +25,25 @@ polished by a short ICP and verified on the whole scan.
 
 Verification (Figure 2's fit check, plus free space): besides the surface fit, every scan ray is
 cast against the model under the hypothesis (one Embree call for all hypotheses); a point measured
-behind the model surface along its ray is impossible under that pose. This is what tells a long
+behind the model surface along its ray (and along the rim of its beam footprint, which can
+straddle an edge) is impossible under that pose. This is what tells a long
 body such as CYGNSS from its half-turn flip, which fits the visible points as well. The leading
 hypothesis is always verified against its near-symmetric alternatives (the turns that map the
 model nearly onto itself, found once per target), so the flip competes even when no polygon
-produced it. More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
+produced it (each alternative judged with the symmetry tolerance before its short ICP); a leader
+whose short ICP had not settled is polished by a full ICP before more polygons are paid for.
+More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
 with (almost) no free-space violation, or the polygon or time budget runs out (default budgets
 :data:`DEFAULT_TIME_BUDGET_S` and :data:`DEFAULT_CONSTRAINED_TIME_BUDGET_S`; running out before a
 hypothesis explained the scan gives ``converged=False`` and says so). The leader and runners-up in
 other basins are refined by a full ICP along the measured rays (each point matched to the face its
 ray crosses) and the best verified one is returned.
+
+Several scans (:meth:`PAHDatabase.localize_scans`, section 3.1.2's "newly acquired point clouds
+over time"): successive scans of one static relative pose are pooled and localized as one cloud.
+On sparse scans (100-300 points on a 1 m target, or on CYGNSS at tens of metres) one scan leaves
+the final ICP noise-limited (Cramer-Rao bound up to 1-2 deg per axis), and leaves the small features that tell the
+cubesat's bus from its quarter and half turns unsampled; two or three scans fix both.
 
 Constrained search (section 5.3, the docking case): a :class:`PoseConstraint` bounds the attitude
 about a nominal one and the position to a cone about the boresight and a range interval. The tree
@@ -855,11 +864,7 @@ class PAHDatabase:
         # The measured rays when given, else the lines of sight: ICP matches each point to the
         # face its ray crosses, and the free-space test casts them.
         rays = P / rng_norm[:, None] if directions is None else np.ascontiguousarray(D_all[ok])
-        # The short screening ICP only has to reach a hypothesis's basin: on a dense (pooled)
-        # scan a random subset serves; verification and the final ICP use every point.
-        screen = (np.sort(rng.choice(n, size=_SCREEN_POINTS, replace=False))
-                  if n > _SCREEN_POINTS else None)
-        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M, screen)
+        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
         # Polygon vertices come from points with scan neighbours: a stray return floats alone,
@@ -1083,10 +1088,9 @@ class PAHDatabase:
         """Short ICP from each start pose, then one batched verification of the distinct results."""
         Ts: list[FloatArray] = []
         settled: list[bool] = []
-        sub = slice(None) if scan.screen is None else scan.screen
-        P, sig, rays = scan.P[sub], scan.sigma[sub], scan.rays[sub]
         for T0 in starts:
-            r = icp(P, mc, T0, sigma=sig, config=icp_cfg, directions=rays, match_along_rays=True)
+            r = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
+                    match_along_rays=True)
             T = r.T_sensor_target
             if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
                 Ts.append(T)
@@ -1100,9 +1104,9 @@ class PAHDatabase:
     def _polish(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
         """Full ICP of a hypothesis on every scan point, verified; updates ``h`` in place.
 
-        The short screening ICP (12 iterations, on a subset of a large scan) can leave a pose a
-        few degrees short of its basin's bottom, where a tight noise gate (triangulation range)
-        sees points behind the surface; settled, it may explain the scan outright.
+        The short screening ICP (12 iterations) can leave a pose a few degrees short of its
+        basin's bottom, where a tight noise gate (triangulation range) sees points behind the
+        surface; settled, it may explain the scan outright.
         """
         r = icp(scan.P, mc, h.T, sigma=scan.sigma, directions=scan.rays, match_along_rays=True)
         fit, like, fs = self._verify(scan, r.T_sensor_target[None], mc)
@@ -1158,7 +1162,10 @@ class PAHDatabase:
         gate cannot). Free space: every scan ray is cast against the model under each pose (one
         Embree call for all K poses); a point measured more than ``scan.margin`` beyond the first
         model surface on its ray is impossible under that pose, since the surface would have
-        returned the pulse (or, specular or dark, absorbed it) before it got there.
+        returned the pulse (or, specular or dark, absorbed it) before it got there. The beam
+        has a footprint: a point counts as a violation only when the rays on the footprint's rim
+        (``_FOOTPRINT_HALF_ANGLE_RAD`` off its axis) all meet the model in front of it too (a
+        footprint straddling an edge or a dark face echoes from behind).
 
         Args:
             scan: the scan bundle.
@@ -1188,6 +1195,19 @@ class PAHDatabase:
             r_model = r_model.reshape(k, n)
             with np.errstate(invalid="ignore"):
                 behind = scan.ranges > r_model + scan.margin
+            kk, ii = np.nonzero(behind)
+            if kk.size and _FOOTPRINT_HALF_ANGLE_RAD > 0:
+                # The beam is a footprint, not a line: where part of it passes an edge (or falls
+                # on a dark or specular face that returns nothing) the first echo comes from
+                # behind the surface the centre ray meets. A violation must hold for the whole
+                # footprint: every rim ray meets the model in front of the measured range.
+                rim = _rim_rays(scan.rays[ii], _FOOTPRINT_HALF_ANGLE_RAD)  # (m, F, 3)
+                rim_t = np.einsum("mfi,mij->mfj", rim, R[kk]).reshape(-1, 3)
+                f = rim.shape[1]
+                _, r_rim, _ = cast_rays(self.target, np.repeat(origins[kk], f, axis=0), rim_t)
+                with np.errstate(invalid="ignore"):
+                    deep = scan.ranges[ii, None] > r_rim.reshape(-1, f) + scan.margin[ii, None]
+                behind[kk, ii] = deep.all(axis=1)
             fs = behind.mean(axis=1)
         return inl.mean(axis=1), like, fs
 
@@ -1319,11 +1339,14 @@ _FULL_CHECK = 16
 # Distinct hypotheses per polygon polished by a short ICP, and that ICP's iterations.
 _SCREEN_PER_POLYGON = 3
 _SCREEN_ICP_ITERATIONS = 12
-# ... on at most this many scan points (a random subset of a larger scan).
-_SCREEN_POINTS = 500
 # Free-space test: a point further than 3 sigma + this [m] behind the model surface along its
 # ray is a violation (the margin absorbs mixed returns of the beam footprint at silhouettes).
 _FREE_SPACE_MARGIN_M = 0.02
+# ... and only if the rays about it on the rim of the beam footprint, this far off its axis
+# [rad], all see it behind the surface too (TriDAR beam: 0.5 mrad full divergence, plus
+# pointing quantisation and jitter); _FOOTPRINT_RAYS of them.
+_FOOTPRINT_HALF_ANGLE_RAD = 3e-4
+_FOOTPRINT_RAYS = 6
 # A hypothesis with more violations than this fraction of the scan is not accepted outright.
 _FREE_SPACE_ACCEPT = 0.02
 _FREE_SPACE_ACCEPT_POINTS = 3.5
@@ -1366,7 +1389,6 @@ class _Scan:
         rays: (n, 3) unit ray directions.
         gate: (n,) inlier distance to the model surface [m] (noise plus model sampling).
         margin: (n,) depth behind the model surface beyond which a point violates free space [m].
-        screen: indices of the points the short screening ICP runs on (None: all of them).
     """
 
     P: FloatArray
@@ -1375,7 +1397,19 @@ class _Scan:
     rays: FloatArray
     gate: FloatArray
     margin: FloatArray
-    screen: IntArray | None = None
+
+
+def _rim_rays(d: FloatArray, half_angle_rad: float) -> FloatArray:
+    """(m, F, 3) unit rays at ``half_angle_rad`` about each unit ray of d (m, 3), F around."""
+    a = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    phi = 2.0 * np.pi * np.arange(_FOOTPRINT_RAYS) / _FOOTPRINT_RAYS
+    off = math.tan(half_angle_rad) * (np.cos(phi)[None, :, None] * u[:, None, :]
+                                      + np.sin(phi)[None, :, None] * v[:, None, :])
+    r = d[:, None, :] + off
+    return r / np.linalg.norm(r, axis=2, keepdims=True)
 
 
 def _cube_group() -> FloatArray:

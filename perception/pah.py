@@ -331,6 +331,8 @@ class _Hypothesis:
         settled: its short ICP converged (an unsettled pose, still sliding along a weakly
             observed direction, scores below what it would reach).
         polished: refined by a full ICP on every point (:meth:`PAHDatabase._polish`).
+        free_space_beam: violation fraction judged over the beam footprint, once computed (it
+            can only be lower than ``free_space``).
     """
 
     T: FloatArray
@@ -340,6 +342,7 @@ class _Hypothesis:
     expanded: bool = False
     settled: bool = True
     polished: bool = False
+    free_space_beam: float | None = None
 
     @property
     def score(self) -> float:
@@ -352,8 +355,8 @@ class _Hypothesis:
         A few violations are tolerated (mixed returns at silhouettes): up to
         ``_FREE_SPACE_ACCEPT`` of the scan, and at least ``_FREE_SPACE_ACCEPT_POINTS`` points.
         """
-        allowed = max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / max(n_points, 1))
-        return self.fitness >= accept_fitness and self.free_space <= allowed
+        fs = self.free_space if self.free_space_beam is None else self.free_space_beam
+        return self.fitness >= accept_fitness and fs <= _free_space_allowed(n_points)
 
 
 class PAHDatabase:
@@ -938,12 +941,15 @@ class PAHDatabase:
                 best.expanded = True
                 hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint)
                 best = _best(hyps, constraint)
+            if best is not None:
+                self._beam_check(scan, best, mc)
             # A leader whose short ICP was still sliding may explain the scan once settled:
             # polish it on every point before paying for another polygon.
             if (best is not None and not best.settled and not best.polished
                     and not best.clean(cfg.accept_fitness, n)):
                 self._polish(scan, best, mc)
                 best = _best(hyps, constraint)
+                self._beam_check(scan, best, mc)
             if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
         if best is None:
@@ -958,7 +964,7 @@ class PAHDatabase:
         notes = []
         if final_fit < cfg.accept_fitness:
             notes.append(f"fit score {final_fit:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
-        if final_fs > max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / n):
+        if final_fs > _free_space_allowed(n):
             notes.append(f"{100 * final_fs:.1f} % of the points lie behind the model surface")
         if constraint is not None and not constraint.admits(res.T_sensor_target):
             notes.append("refined pose outside the corridor")
@@ -1075,7 +1081,10 @@ class PAHDatabase:
             if inside.any():
                 score = np.where(inside, score, -np.inf)
         k = int(np.argmax(score))
-        return results[k], float(fit[k]), float(fs[k])
+        fs_k = float(fs[k])
+        if fs_k > _free_space_allowed(scan.P.shape[0]):
+            fs_k = float(self._verify(scan, Ts[k : k + 1], mc, footprint=True)[2][0])
+        return results[k], float(fit[k]), fs_k
 
     def _screen(
         self,
@@ -1101,6 +1110,11 @@ class PAHDatabase:
         return [_Hypothesis(T, float(a), float(b), float(c), settled=ok)
                 for T, a, b, c, ok in zip(Ts, fit, like, fs, settled)]
 
+    def _beam_check(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
+        """Judge the violations of a hypothesis that fails acceptance on them over the footprint."""
+        if h.free_space_beam is None and h.free_space > _free_space_allowed(scan.P.shape[0]):
+            h.free_space_beam = float(self._verify(scan, h.T[None], mc, footprint=True)[2][0])
+
     def _polish(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
         """Full ICP of a hypothesis on every scan point, verified; updates ``h`` in place.
 
@@ -1112,7 +1126,7 @@ class PAHDatabase:
         fit, like, fs = self._verify(scan, r.T_sensor_target[None], mc)
         h.T = r.T_sensor_target
         h.fitness, h.likelihood, h.free_space = float(fit[0]), float(like[0]), float(fs[0])
-        h.settled, h.polished = bool(r.converged), True
+        h.settled, h.polished, h.free_space_beam = bool(r.converged), True, None
 
     def _alternatives(
         self,
@@ -1152,7 +1166,8 @@ class PAHDatabase:
         return self._screen(scan, starts, known, mc, icp_cfg)
 
     def _verify(
-        self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True
+        self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True,
+        footprint: bool = False,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Surface fit and free-space test of K poses on the whole scan (vectorised).
 
@@ -1163,15 +1178,19 @@ class PAHDatabase:
         Embree call for all K poses); a point measured more than ``scan.margin`` beyond the first
         model surface on its ray is impossible under that pose, since the surface would have
         returned the pulse (or, specular or dark, absorbed it) before it got there. The beam
-        has a footprint: a point counts as a violation only when the rays on the footprint's rim
-        (``_FOOTPRINT_HALF_ANGLE_RAD`` off its axis) all meet the model in front of it too (a
-        footprint straddling an edge or a dark face echoes from behind).
+        has a footprint: with ``footprint`` a point counts as a violation only when the rays on
+        the footprint's rim (``_FOOTPRINT_HALF_ANGLE_RAD`` off its axis) all meet the model in
+        front of it too (a footprint straddling an edge or a dark face echoes from behind). The
+        ranking uses the centre ray (an edge a pose puts in a beam's way is weak evidence against
+        it); whether a pose explains the scan is judged over the footprint
+        (:meth:`_Hypothesis.clean`), so that beam effects never reject the truth.
 
         Args:
             scan: the scan bundle.
             Ts: (K, 4, 4) poses ``T_sensor_target``.
             mc: the dense model.
             free_space: run the ray test (else its column is zero).
+            footprint: count a violation only when the whole beam footprint sees it (below).
 
         Returns:
             fitness (K,), likelihood (K,) and free-space violation fraction (K,).
@@ -1196,7 +1215,7 @@ class PAHDatabase:
             with np.errstate(invalid="ignore"):
                 behind = scan.ranges > r_model + scan.margin
             kk, ii = np.nonzero(behind)
-            if kk.size and _FOOTPRINT_HALF_ANGLE_RAD > 0:
+            if footprint and kk.size and _FOOTPRINT_HALF_ANGLE_RAD > 0:
                 # The beam is a footprint, not a line: where part of it passes an edge (or falls
                 # on a dark or specular face that returns nothing) the first echo comes from
                 # behind the surface the centre ray meets. A violation must hold for the whole
@@ -1397,6 +1416,11 @@ class _Scan:
     rays: FloatArray
     gate: FloatArray
     margin: FloatArray
+
+
+def _free_space_allowed(n_points: int) -> float:
+    """Violation fraction a pose that explains a scan of ``n_points`` may show (silhouettes)."""
+    return max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / max(n_points, 1))
 
 
 def _rim_rays(d: FloatArray, half_angle_rad: float) -> FloatArray:

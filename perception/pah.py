@@ -25,16 +25,25 @@ polished by a short ICP and verified on the whole scan.
 
 Verification (Figure 2's fit check, plus free space): besides the surface fit, every scan ray is
 cast against the model under the hypothesis (one Embree call for all hypotheses); a point measured
-behind the model surface along its ray is impossible under that pose. This is what tells a long
+behind the model surface along its ray (and along the rim of its beam footprint, which can
+straddle an edge) is impossible under that pose. This is what tells a long
 body such as CYGNSS from its half-turn flip, which fits the visible points as well. The leading
 hypothesis is always verified against its near-symmetric alternatives (the turns that map the
 model nearly onto itself, found once per target), so the flip competes even when no polygon
-produced it. More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
+produced it (each alternative judged with the symmetry tolerance before its short ICP); a leader
+whose short ICP had not settled is polished by a full ICP before more polygons are paid for.
+More polygons are tried until a verified leader fits ``accept_fitness`` of the scan
 with (almost) no free-space violation, or the polygon or time budget runs out (default budgets
 :data:`DEFAULT_TIME_BUDGET_S` and :data:`DEFAULT_CONSTRAINED_TIME_BUDGET_S`; running out before a
 hypothesis explained the scan gives ``converged=False`` and says so). The leader and runners-up in
 other basins are refined by a full ICP along the measured rays (each point matched to the face its
 ray crosses) and the best verified one is returned.
+
+Several scans (:meth:`PAHDatabase.localize_scans`, section 3.1.2's "newly acquired point clouds
+over time"): successive scans of one static relative pose are pooled and localized as one cloud.
+On sparse scans (100-300 points on a 1 m target, or on CYGNSS at tens of metres) one scan leaves
+the final ICP noise-limited (Cramer-Rao bound up to 1-2 deg per axis), and leaves the small features that tell the
+cubesat's bus from its quarter and half turns unsampled; two or three scans fix both.
 
 Constrained search (section 5.3, the docking case): a :class:`PoseConstraint` bounds the attitude
 about a nominal one and the position to a cone about the boresight and a range interval. The tree
@@ -49,11 +58,12 @@ excludes are never tried. Constrained acquisition costs a small fraction of the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +73,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from perception.config import CorridorConfig, ICPConfig, PAHConfig
+from perception.pointcloud import PointCloud
 from perception.registration import (
     ModelCloud,
     RegistrationResult,
@@ -319,6 +330,9 @@ class _Hypothesis:
         expanded: its near-symmetric alternatives have been verified too.
         settled: its short ICP converged (an unsettled pose, still sliding along a weakly
             observed direction, scores below what it would reach).
+        polished: refined by a full ICP on every point (:meth:`PAHDatabase._polish`).
+        free_space_beam: violation fraction judged over the beam footprint, once computed (it
+            can only be lower than ``free_space``).
     """
 
     T: FloatArray
@@ -327,6 +341,8 @@ class _Hypothesis:
     free_space: float
     expanded: bool = False
     settled: bool = True
+    polished: bool = False
+    free_space_beam: float | None = None
 
     @property
     def score(self) -> float:
@@ -339,8 +355,8 @@ class _Hypothesis:
         A few violations are tolerated (mixed returns at silhouettes): up to
         ``_FREE_SPACE_ACCEPT`` of the scan, and at least ``_FREE_SPACE_ACCEPT_POINTS`` points.
         """
-        allowed = max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / max(n_points, 1))
-        return self.fitness >= accept_fitness and self.free_space <= allowed
+        fs = self.free_space if self.free_space_beam is None else self.free_space_beam
+        return self.fitness >= accept_fitness and fs <= _free_space_allowed(n_points)
 
 
 class PAHDatabase:
@@ -925,6 +941,15 @@ class PAHDatabase:
                 best.expanded = True
                 hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint)
                 best = _best(hyps, constraint)
+            if best is not None:
+                self._beam_check(scan, best, mc)
+            # A leader whose short ICP was still sliding may explain the scan once settled:
+            # polish it on every point before paying for another polygon.
+            if (best is not None and not best.settled and not best.polished
+                    and not best.clean(cfg.accept_fitness, n)):
+                self._polish(scan, best, mc)
+                best = _best(hyps, constraint)
+                self._beam_check(scan, best, mc)
             if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
         if best is None:
@@ -939,7 +964,7 @@ class PAHDatabase:
         notes = []
         if final_fit < cfg.accept_fitness:
             notes.append(f"fit score {final_fit:.2f} < accept_fitness {cfg.accept_fitness:.2f}")
-        if final_fs > max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / n):
+        if final_fs > _free_space_allowed(n):
             notes.append(f"{100 * final_fs:.1f} % of the points lie behind the model surface")
         if constraint is not None and not constraint.admits(res.T_sensor_target):
             notes.append("refined pose outside the corridor")
@@ -952,6 +977,55 @@ class PAHDatabase:
         elif not res.converged:
             res.reason = res.reason or "ICP refinement did not converge"
         res.time_s = elapsed()
+        return res
+
+    def localize_scans(
+        self,
+        scans: Sequence[PointCloud],
+        rng: np.random.Generator,
+        constraint: PoseConstraint | None = None,
+        max_time_s: float | None = None,
+    ) -> RegistrationResult:
+        """Localize from several successive scans of the same relative pose (more data, one pose).
+
+        Seed 000 section 3.1.2: "it is possible to repeat the process ... from newly acquired point
+        clouds over time ... to increase the probability of success". The scans must see the
+        target at one pose in one sensor frame (a station-keeping chaser and a target that does
+        not turn appreciably over the scans, or scans already compensated for the motion): their
+        points, noise and measured rays are pooled and localized as one cloud by
+        :meth:`localize`, so polygons, the fit and free-space checks and the final ICP all use
+        every scan. Two or three scans halve the pose noise of a sparse scan's ICP and sample
+        more of the small features (antenna, port ring, nozzle) that tell a box-shaped body from
+        its quarter and half turns.
+
+        Nothing here checks that the scans share one pose (the fit of a box turned by 15 deg
+        between scans hardly drops): pool only scans the caller knows to be of one pose.
+
+        Args:
+            scans: one or more :class:`~perception.pointcloud.PointCloud` (``points``, ``sigma``,
+                ``directions`` are used).
+            rng, constraint, max_time_s: as for :meth:`localize` (the budget covers all scans).
+
+        Returns:
+            As :meth:`localize`; ``n_points`` counts the pooled points.
+
+        Raises:
+            ValueError: ``scans`` empty or not PointClouds, and everything :meth:`localize` raises.
+        """
+        if isinstance(scans, PointCloud):
+            scans = [scans]
+        if not isinstance(scans, Sequence) or len(scans) == 0:
+            raise ValueError(f"scans is {type(scans).__name__}; expected a non-empty sequence of "
+                             "PointCloud")
+        for i, c in enumerate(scans):
+            if not isinstance(c, PointCloud):
+                raise ValueError(f"scans[{i}] is a {type(c).__name__}; expected a PointCloud")  # noqa: TRY004
+        P = np.concatenate([c.points for c in scans])
+        sig = np.concatenate([np.broadcast_to(np.asarray(c.sigma, dtype=np.float64), (len(c),))
+                              for c in scans])
+        D = np.concatenate([c.directions for c in scans])
+        res = self.localize(P, rng, constraint=constraint, sigma=sig, max_time_s=max_time_s,
+                            directions=D)
         return res
 
     def _refine(
@@ -1007,7 +1081,10 @@ class PAHDatabase:
             if inside.any():
                 score = np.where(inside, score, -np.inf)
         k = int(np.argmax(score))
-        return results[k], float(fit[k]), float(fs[k])
+        fs_k = float(fs[k])
+        if fs_k > _free_space_allowed(scan.P.shape[0]):
+            fs_k = float(self._verify(scan, Ts[k : k + 1], mc, footprint=True)[2][0])
+        return results[k], float(fit[k]), fs_k
 
     def _screen(
         self,
@@ -1032,6 +1109,24 @@ class PAHDatabase:
         fit, like, fs = self._verify(scan, np.stack(Ts), mc)
         return [_Hypothesis(T, float(a), float(b), float(c), settled=ok)
                 for T, a, b, c, ok in zip(Ts, fit, like, fs, settled)]
+
+    def _beam_check(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
+        """Judge the violations of a hypothesis that fails acceptance on them over the footprint."""
+        if h.free_space_beam is None and h.free_space > _free_space_allowed(scan.P.shape[0]):
+            h.free_space_beam = float(self._verify(scan, h.T[None], mc, footprint=True)[2][0])
+
+    def _polish(self, scan: _Scan, h: _Hypothesis, mc: ModelCloud) -> None:
+        """Full ICP of a hypothesis on every scan point, verified; updates ``h`` in place.
+
+        The short screening ICP (12 iterations) can leave a pose a few degrees short of its
+        basin's bottom, where a tight noise gate (triangulation range) sees points behind the
+        surface; settled, it may explain the scan outright.
+        """
+        r = icp(scan.P, mc, h.T, sigma=scan.sigma, directions=scan.rays, match_along_rays=True)
+        fit, like, fs = self._verify(scan, r.T_sensor_target[None], mc)
+        h.T = r.T_sensor_target
+        h.fitness, h.likelihood, h.free_space = float(fit[0]), float(like[0]), float(fs[0])
+        h.settled, h.polished, h.free_space_beam = bool(r.converged), True, None
 
     def _alternatives(
         self,
@@ -1060,13 +1155,19 @@ class PAHDatabase:
                     & constraint.position_ok(Ts[:, :3, 3], slack_m=0.1)]
             if Ts.shape[0] == 0:
                 return []
-        fit, _, _ = self._verify(scan, Ts, mc, free_space=False)
+        # A near-symmetry maps the surface onto itself only to within _SYMMETRY_GATE_M (a turn
+        # fitted to the whole model, wing and all, is a few cm and degrees off the turn of the
+        # part the scan sees): judged with the plain gate, the alternative that is the truth can
+        # fit a fifth of the scan before its short ICP and fit all of it after.
+        loose = dataclasses.replace(scan, gate=scan.gate + _SYMMETRY_GATE_M)
+        fit, _, _ = self._verify(loose, Ts, mc, free_space=False)
         order = np.argsort(-fit, kind="stable")[:_ALTERNATIVES_SCREENED]
         starts = [Ts[i] for i in order if fit[i] >= 0.5 * h.fitness]
         return self._screen(scan, starts, known, mc, icp_cfg)
 
     def _verify(
-        self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True
+        self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True,
+        footprint: bool = False,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Surface fit and free-space test of K poses on the whole scan (vectorised).
 
@@ -1076,13 +1177,20 @@ class PAHDatabase:
         gate cannot). Free space: every scan ray is cast against the model under each pose (one
         Embree call for all K poses); a point measured more than ``scan.margin`` beyond the first
         model surface on its ray is impossible under that pose, since the surface would have
-        returned the pulse (or, specular or dark, absorbed it) before it got there.
+        returned the pulse (or, specular or dark, absorbed it) before it got there. The beam
+        has a footprint: with ``footprint`` a point counts as a violation only when the rays on
+        the footprint's rim (``_FOOTPRINT_HALF_ANGLE_RAD`` off its axis) all meet the model in
+        front of it too (a footprint straddling an edge or a dark face echoes from behind). The
+        ranking uses the centre ray (an edge a pose puts in a beam's way is weak evidence against
+        it); whether a pose explains the scan is judged over the footprint
+        (:meth:`_Hypothesis.clean`), so that beam effects never reject the truth.
 
         Args:
             scan: the scan bundle.
             Ts: (K, 4, 4) poses ``T_sensor_target``.
             mc: the dense model.
             free_space: run the ray test (else its column is zero).
+            footprint: count a violation only when the whole beam footprint sees it (below).
 
         Returns:
             fitness (K,), likelihood (K,) and free-space violation fraction (K,).
@@ -1106,6 +1214,19 @@ class PAHDatabase:
             r_model = r_model.reshape(k, n)
             with np.errstate(invalid="ignore"):
                 behind = scan.ranges > r_model + scan.margin
+            kk, ii = np.nonzero(behind)
+            if footprint and kk.size and _FOOTPRINT_HALF_ANGLE_RAD > 0:
+                # The beam is a footprint, not a line: where part of it passes an edge (or falls
+                # on a dark or specular face that returns nothing) the first echo comes from
+                # behind the surface the centre ray meets. A violation must hold for the whole
+                # footprint: every rim ray meets the model in front of the measured range.
+                rim = _rim_rays(scan.rays[ii], _FOOTPRINT_HALF_ANGLE_RAD)  # (m, F, 3)
+                rim_t = np.einsum("mfi,mij->mfj", rim, R[kk]).reshape(-1, 3)
+                f = rim.shape[1]
+                _, r_rim, _ = cast_rays(self.target, np.repeat(origins[kk], f, axis=0), rim_t)
+                with np.errstate(invalid="ignore"):
+                    deep = scan.ranges[ii, None] > r_rim.reshape(-1, f) + scan.margin[ii, None]
+                behind[kk, ii] = deep.all(axis=1)
             fs = behind.mean(axis=1)
         return inl.mean(axis=1), like, fs
 
@@ -1240,6 +1361,11 @@ _SCREEN_ICP_ITERATIONS = 12
 # Free-space test: a point further than 3 sigma + this [m] behind the model surface along its
 # ray is a violation (the margin absorbs mixed returns of the beam footprint at silhouettes).
 _FREE_SPACE_MARGIN_M = 0.02
+# ... and only if the rays about it on the rim of the beam footprint, this far off its axis
+# [rad], all see it behind the surface too (TriDAR beam: 0.5 mrad full divergence, plus
+# pointing quantisation and jitter); _FOOTPRINT_RAYS of them.
+_FOOTPRINT_HALF_ANGLE_RAD = 3e-4
+_FOOTPRINT_RAYS = 6
 # A hypothesis with more violations than this fraction of the scan is not accepted outright.
 _FREE_SPACE_ACCEPT = 0.02
 _FREE_SPACE_ACCEPT_POINTS = 3.5
@@ -1290,6 +1416,24 @@ class _Scan:
     rays: FloatArray
     gate: FloatArray
     margin: FloatArray
+
+
+def _free_space_allowed(n_points: int) -> float:
+    """Violation fraction a pose that explains a scan of ``n_points`` may show (silhouettes)."""
+    return max(_FREE_SPACE_ACCEPT, _FREE_SPACE_ACCEPT_POINTS / max(n_points, 1))
+
+
+def _rim_rays(d: FloatArray, half_angle_rad: float) -> FloatArray:
+    """(m, F, 3) unit rays at ``half_angle_rad`` about each unit ray of d (m, 3), F around."""
+    a = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    phi = 2.0 * np.pi * np.arange(_FOOTPRINT_RAYS) / _FOOTPRINT_RAYS
+    off = math.tan(half_angle_rad) * (np.cos(phi)[None, :, None] * u[:, None, :]
+                                      + np.sin(phi)[None, :, None] * v[:, None, :])
+    r = d[:, None, :] + off
+    return r / np.linalg.norm(r, axis=2, keepdims=True)
 
 
 def _cube_group() -> FloatArray:

@@ -38,6 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acq-cases", type=int, default=200, help="acquisition cases per target")
     parser.add_argument("--no-acquisition", action="store_true", help="skip the PAH benchmark")
     parser.add_argument("--no-tracking", action="store_true", help="skip the ICP tracking benchmark")
+    parser.add_argument("--acq-scans", type=int, default=3, metavar="K",
+                        help="also localize from K successive scans of each case's static pose "
+                        "(PAHDatabase.localize_scans; 1: single-scan rows only)")
+    parser.add_argument("--acq-log", default=None, metavar="PATH",
+                        help="write one JSON line per acquisition case and method (errors, reason)")
+    parser.add_argument("--acq-only", default=None, metavar="CASES",
+                        help="run only these acquisition case numbers (comma-separated)")
 
 
 def _peers(model_pts: np.ndarray, model_nrm: np.ndarray) -> dict[str, Any]:
@@ -300,18 +307,31 @@ def _o3d_global(model_pts: np.ndarray, voxel: float) -> Any:
 
 def run_acquisition(args: argparse.Namespace) -> None:
     """PAH acquisition: success rate and time, unconstrained and constrained, next to Open3D."""
+    import json
+
     from scipy.spatial.transform import Rotation
 
     from agents.benchmarks.timing import Timing, format_table
     from perception.config import SensorConfig
-    from perception.geometry import make_T
+    from perception.geometry import make_T, pose_error
     from perception.pah import PAHDatabase, PoseConstraint
     from perception.registration import prepare_model
     from perception.sensors import TriDARSensor
     from perception.targets import load_target
 
     n_cases = 20 if args.quick else int(args.acq_cases)
+    n_scans = int(getattr(args, "acq_scans", 1))
+    if n_scans < 1:
+        raise ValueError(f"--acq-scans={n_scans}; expected >= 1")
+    only = getattr(args, "acq_only", None)
+    case_ids = (
+        [int(c) for c in str(only).split(",") if c.strip()] if only else list(range(n_cases))
+    )
+    log_path = getattr(args, "acq_log", None)
+    log = open(log_path, "w") if log_path else None  # noqa: SIM115 - closed at the end
     sensor = TriDARSensor(SensorConfig())
+    # The further scans' own sensor: the first scan's frame counter runs as it always has.
+    more_sensor = TriDARSensor(SensorConfig())
     rows = []
     for name in ("cubesat", "cygnss"):
         target = load_target(name)
@@ -323,24 +343,50 @@ def run_acquisition(args: argparse.Namespace) -> None:
                 peer = _o3d_global(prepare_model(target).points, 0.05)
             except Exception:  # noqa: BLE001 - optional peer
                 peer = None
+        multi = [f"pah unconstrained, {n_scans} scans", f"pah constrained, {n_scans} scans"]
+        methods = ["pah unconstrained", "pah constrained", *(multi if n_scans > 1 else []),
+                   "open3d ransac+fpfh"]
         stats: dict[str, tuple[list[float], list[float], list[bool]]] = {
-            k: ([], [], []) for k in ("pah unconstrained", "pah constrained", "open3d ransac+fpfh")
+            k: ([], [], []) for k in methods
         }
-        for case in range(n_cases):
+        for case in case_ids:
             rng = np.random.default_rng([args.seed + 1000, case])
             R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
             T_true = make_T(R, [0.0, 0.0, rng.uniform(range_lo, range_hi)])
             cloud = sensor.scan(target, T_true, sensor.make_scan_pattern(0, T_true, target.regions["whole"]), rng)
             R_nom = Rotation.from_rotvec(rng.normal(scale=np.radians(5.0), size=3)).as_matrix() @ R
             corridor = PoseConstraint(R_nom, np.radians(20.0), np.radians(15.0), 1.0, 100.0)
-            for j, (key, con) in enumerate((("pah unconstrained", None), ("pah constrained", corridor))):
-                pah_rng = np.random.default_rng([args.seed + 1000, case, j + 1])
+            # Further scans of the same static pose (the pattern's phase advanced frame by frame),
+            # from their own generator: the single-scan case above is unchanged by them.
+            scans = [cloud]
+            more_rng = np.random.default_rng([args.seed + 1000, case, 100])
+            for f in range(1, n_scans):
+                pattern = sensor.make_scan_pattern(f, T_true, target.regions["whole"])
+                scans.append(more_sensor.scan(target, T_true, pattern, more_rng, frame_index=f))
+            runs = [("pah unconstrained", None, 1), ("pah constrained", corridor, 2)]
+            if n_scans > 1:
+                runs += [(multi[0], None, 1), (multi[1], corridor, 2)]
+            for key, con, j in runs:
+                pah_rng = np.random.default_rng([args.seed + 1000, case, j])
                 c0 = time.process_time()
-                res = db.localize(cloud.points, pah_rng, constraint=con, sigma=cloud.sigma,
-                                  directions=cloud.directions)
+                if key in multi:
+                    res = db.localize_scans(scans, pah_rng, constraint=con)
+                else:
+                    res = db.localize(cloud.points, pah_rng, constraint=con, sigma=cloud.sigma,
+                                      directions=cloud.directions)
                 stats[key][1].append(time.process_time() - c0)
                 stats[key][0].append(res.time_s)
                 stats[key][2].append(_acq_success(target, res.T_sensor_target, T_true))
+                if log is not None:
+                    e_m, e_deg = pose_error(res.T_sensor_target, T_true)
+                    log.write(json.dumps({
+                        "target": name, "case": case, "method": key, "ok": stats[key][2][-1],
+                        "e_m": float(e_m), "e_deg": float(e_deg), "t_s": res.time_s,
+                        "range_m": float(T_true[2, 3]), "n_points": res.n_points,
+                        "fitness": float(res.fitness), "converged": bool(res.converged),
+                        "iterations": int(res.iterations), "reason": res.reason,
+                    }) + "\n")
+                    log.flush()
             if peer is not None:
                 t0, c0 = time.perf_counter(), time.process_time()
                 try:
@@ -359,6 +405,7 @@ def run_acquisition(args: argparse.Namespace) -> None:
                 "target": name,
                 "range_m": f"{range_lo:g}-{range_hi:g}",
                 "method": key,
+                "scans": n_scans if key in multi else 1,
                 "cases": tm.n,
                 "success_%": 100.0 * float(np.mean(ok)),
                 "t_med_s": tm.median,
@@ -367,8 +414,13 @@ def run_acquisition(args: argparse.Namespace) -> None:
                 "cpu_med_s": float(np.median(cpu)),
                 "t_vs_pah": tm.median / base,
             })
+    if log is not None:
+        log.close()
     print()
     print("Acquisition (PAH), random attitudes (cubesat 2-10 m, cygnss 5-50 m), TriDAR scans steered"
           " on the whole target; success: < 5 cm and < 2 deg (ADD-S < 5 cm for symmetric targets)")
+    if n_scans > 1:
+        print(f"'{n_scans} scans': PAHDatabase.localize_scans on {n_scans} successive 0.1 s scans of"
+              " the same static pose (times: localization only, not the extra scans' acquisition)")
     print(ACQ_GOALS)
     print(format_table(rows))

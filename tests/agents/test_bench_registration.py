@@ -41,3 +41,35 @@ def test_bound_stats_with_only_degenerate_frames_report_nan() -> None:
     stats.add(_result(np.zeros(3), 1e6 * np.eye(6), ["tx"]), np.eye(4))
     c = stats.columns()
     assert c["degenerate"] == 1 and np.isnan(c["rms/crlb pos"])
+
+
+def test_acquisition_bench_logs_each_case_and_adds_the_multi_scan_rows(tmp_path, capsys) -> None:
+    import argparse
+    import json
+
+    from agents.benchmarks.registration import add_arguments, run_acquisition
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    log = tmp_path / "acq.jsonl"
+    args = parser.parse_args(["--no-peers", "--acq-only", "3", "--acq-scans", "2",
+                              "--acq-log", str(log)])
+    run_acquisition(args)
+    out = capsys.readouterr().out
+    for method in ("pah unconstrained", "pah constrained", "pah unconstrained, 2 scans",
+                   "pah constrained, 2 scans"):
+        assert f"| {method} " in out
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    # One line per target and method, for case 3 only, with the pose error of the answer.
+    assert len(rows) == 8 and {r["case"] for r in rows} == {3}
+    assert {r["target"] for r in rows} == {"cubesat", "cygnss"}
+    for r in rows:
+        assert r["ok"] == (r["e_m"] < 0.05 and r["e_deg"] < 2.0)
+        assert r["n_points"] > 50 and r["t_s"] > 0
+    # The further scans come from their own generator: the single-scan case is the benchmark's.
+    single = [r for r in rows if r["method"] == "pah unconstrained"]
+    assert {r["target"]: r["range_m"] for r in single}["cubesat"] == pytest.approx(
+        {r["target"]: r["range_m"] for r in rows if r["method"].endswith("2 scans")}["cubesat"]
+    )
+    with pytest.raises(ValueError, match="acq-scans"):
+        run_acquisition(parser.parse_args(["--no-peers", "--acq-only", "3", "--acq-scans", "0"]))

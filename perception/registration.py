@@ -847,7 +847,11 @@ def icp(
     (never below the floor ``max(min_correspondence_m, 4 sigma, 1.5 model spacing)``) and applies
     the robust kernel, which rejects returns from parts missing from the model. Correspondences
     whose model normal faces away from the sensor by more than ``back_facing_cos`` are dropped
-    (the scan only sees front faces; this matters on thin panels).
+    (the scan only sees front faces; this matters on thin panels). The fine phase stops once its
+    gate has settled and the correction left is below ``step_tol_sigma`` of the frame's own
+    information: the last step, or, while the steps contract, their geometric tail (a step of
+    ``s`` sigmas after one of ``s / rho`` leaves about ``s rho / (1 - rho)``). After such a step
+    the final fit keeps that iteration's matches and only re-evaluates their residuals.
 
     Args:
         points: (N, 3) scan points [m], sensor frame. Non-finite rows are ignored.

@@ -959,31 +959,37 @@ def icp(
             along_rays,
         )
         m_raw = m
-        if gate_k > 0.0 and m.sel.size > min_pts:
+        # One mask over the matches (median gate, then trim, then front faces), applied once.
+        dist = m.dist
+        kept = None  # None: all
+        n_kept = int(m.sel.size)
+        if gate_k > 0.0 and n_kept > min_pts:
             # Adaptive gate on the median match distance: once the pose is close, a stray
             # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
             # keeps it while fewer than trim_fraction of the points are strays).
-            thr = max(median_floor, gate_k * median(m.dist))
+            thr = max(median_floor, gate_k * median(dist))
             if thr < gate:
-                far = m.dist > thr
-                if far.any() and m.sel.size - int(far.sum()) >= min_pts:
-                    m = m.keep(~far)
-        if trim > 0.0 and m.sel.size > min_pts:
-            kth = int((1.0 - trim) * (m.sel.size - 1))
-            thr = float(np.partition(m.dist, kth)[kth])
+                near = dist <= thr
+                n_near = int(np.count_nonzero(near))
+                if n_near < n_kept and n_near >= min_pts:
+                    kept, n_kept = near, n_near
+        if trim > 0.0 and n_kept > min_pts:
+            kth = int((1.0 - trim) * (n_kept - 1))
+            thr = float(np.partition(dist if kept is None else dist[kept], kth)[kth])
             if thr > gate_floor:
-                m = m.keep(m.dist <= thr)
+                kept = dist <= thr if kept is None else kept & (dist <= thr)
         cos = np.einsum("ij,ij->i", m.normal, d_all[m.sel])
         front = cos < back_cos
-        nv = int(np.count_nonzero(front))
+        kept = front if kept is None else kept & front
+        nv = int(np.count_nonzero(kept))
         if nv < min_pts:
             return RegistrationResult.failure(
                 f"{nv} correspondences within {gate:.3g} m at iteration {it}; ICP needs >= {min_pts}",
                 T, n_points=n, time_s=time.perf_counter() - t_start, iterations=it,
             )
         if nv < m.sel.size:
-            m = m.keep(front)
-            cos = cos[front]
+            m = m.keep(kept)
+            cos = cos[kept]
         sv = sig[m.sel]
         var = sv * sv * (cos * cos + floor_frac**2) + model_sig**2
         w = 1.0 / var

@@ -32,6 +32,7 @@ the raster (its zig-zag lines cross new ground).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -158,9 +159,7 @@ class ScanPattern:
             return 0.0
         dt2 = np.diff(self.times)[:-1] * np.diff(self.times)[1:]
         dt2 = np.where(dt2 > 0, dt2, np.inf)
-        acc_az = np.abs(np.diff(self.az, 2)) / dt2
-        acc_el = np.abs(np.diff(self.el, 2)) / dt2
-        return float(max(acc_az.max(), acc_el.max()))
+        return _peak_acceleration(self.az, self.el, dt2)
 
     def check_fov(self, fov_rad: float | npt.ArrayLike, tol: float = 1e-9) -> None:
         """Raise ``ValueError`` naming ``pattern`` if any angle lies outside the field of view."""
@@ -272,24 +271,40 @@ def _generate(
     k = default_cycles(n) if cycles is None else int(cycles)
     if k < min_cycles:
         raise ValueError(f"cycles={cycles!r} for {name}; expected >= {min_cycles}")
-    times = np.arange(n, dtype=np.float64) / float(sample_rate_hz)
-    s = np.arange(n, dtype=np.float64) / n
+    times, s, dt2 = _sample_grid(n, float(sample_rate_hz))
     while True:
         u, v = wave(s, float(phase), k)
-        pattern = ScanPattern(
-            az=c[0] + half[0] * u,
-            el=c[1] + half[1] * v,
-            times=times,
-            name=name,
-            phase=float(phase),
-            sample_rate_hz=float(sample_rate_hz),
-        )
-        if max_accel_rad_s2 is None or pattern.peak_acceleration() <= max_accel_rad_s2:
+        az = c[0] + half[0] * u
+        el = c[1] + half[1] * v
+        fits = max_accel_rad_s2 is None or _peak_acceleration(az, el, dt2) <= max_accel_rad_s2
+        if fits or k <= min_cycles:
+            pattern = ScanPattern(az=az, el=el, times=times, name=name, phase=float(phase),
+                                  sample_rate_hz=float(sample_rate_hz))
+            if not fits:
+                pattern.check_smooth(max_accel_rad_s2)  # raises with the numbers
             return pattern
-        if k <= min_cycles:
-            pattern.check_smooth(max_accel_rad_s2)  # raises with the numbers
         # Acceleration grows ~ k^2 (k^3 for the spiral centre): shrink the waveform until it fits.
         k -= 1
+
+
+@functools.lru_cache(maxsize=16)
+def _sample_grid(n: int, sample_rate_hz: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Sample times [s], waveform parameter ``s`` in [0, 1) and the finite-difference ``dt^2`` of
+    :meth:`ScanPattern.peak_acceleration` for ``n`` samples (read-only, shared across frames)."""
+    times = np.arange(n, dtype=np.float64) / sample_rate_hz
+    s = np.arange(n, dtype=np.float64) / n
+    dt2 = np.diff(times)[:-1] * np.diff(times)[1:]
+    dt2 = np.where(dt2 > 0, dt2, np.inf)
+    for arr in (times, s, dt2):
+        arr.setflags(write=False)
+    return times, s, dt2
+
+
+def _peak_acceleration(az: FloatArray, el: FloatArray, dt2: FloatArray) -> float:
+    """:meth:`ScanPattern.peak_acceleration` of angles ``az``, ``el`` (same arithmetic)."""
+    if az.size < 3:
+        return 0.0
+    return float(max((np.abs(np.diff(az, 2)) / dt2).max(), (np.abs(np.diff(el, 2)) / dt2).max()))
 
 
 def lissajous(

@@ -948,8 +948,9 @@ class PAHDatabase:
             if (best is not None and not best.settled and not best.polished
                     and not best.clean(cfg.accept_fitness, n)):
                 self._polish(scan, best, mc)
-                best = _best(hyps, constraint)
-                self._beam_check(scan, best, mc)
+                best = _best(hyps, constraint)  # None if polishing left the corridor
+                if best is not None:
+                    self._beam_check(scan, best, mc)
             if best is not None and best.expanded and best.clean(cfg.accept_fitness, n):
                 break
         if best is None:

@@ -392,6 +392,11 @@ class PipelineConfig(StrictModel):
     filter_reinit_frames: Annotated[int, Field(ge=1)] = Field(
         2, description="good registrations rejected by the filter gate in a row before re-init"
     )
+    fine_only_tracking: bool = Field(
+        True, description="on an established track (rates estimated, the last frames accepted) "
+        "ICP starts from the filter's prediction in its fine phase, without the coarse phase "
+        "(one correspondence search fewer per frame)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------

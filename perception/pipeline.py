@@ -455,7 +455,8 @@ class TriDAR:
         rng_m = float(np.linalg.norm(T_pred[:3, 3]))
         # On an established track (rates estimated, the last frames accepted) the prediction is
         # within a few sigma of the answer: ICP starts in its fine phase.
-        settled = self._n_updates >= 3 and self.logic.bad_frames == 0 and self._gate_rejects == 0
+        settled = (self.pc.fine_only_tracking and self._n_updates >= 3
+                   and self.logic.bad_frames == 0 and self._gate_rejects == 0)
         res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
                   config=self.logic.icp_config_for_range(rng_m), coarse=not settled)
         self.last_result = res

@@ -268,3 +268,32 @@ def test_ambiguity_monitor_leaves_the_flipped_twin(start_flipped: bool) -> None:
     # measured after the filter settles: < 0.45 deg and < 1 cm either way
     errs = [pose_error(sv.T_sensor_target, fly.T(t)) for t, sv in hist[-10:] if sv.valid.attitude]
     assert len(errs) == 10 and max(e[1] for e in errs) < 0.75 and max(e[0] for e in errs) < 0.015
+
+
+@pytest.mark.parametrize("fine_only", [True, False])
+def test_established_track_starts_icp_in_its_fine_phase_unless_configured(monkeypatch,
+                                                                           fine_only: bool) -> None:
+    """``pipeline.fine_only_tracking``: after three accepted updates ICP runs without its coarse
+    phase (the first frames of a track keep it); off, every frame keeps it."""
+    import perception.pipeline as pipeline_module
+
+    calls = []
+    orig = pipeline_module.icp
+
+    def spy(*a, **k):
+        calls.append(k.get("coarse", True))
+        return orig(*a, **k)
+
+    monkeypatch.setattr(pipeline_module, "icp", spy)
+    cfg = load_config("final_approach", pipeline__use_corridor=False,
+                      pipeline__fine_only_tracking=fine_only)
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(2))
+    fly = Fly(approach_pose(cfg, target, 8.0), v=(0.0, 0.0, -0.05))
+    hist = _run(tri, fly, 30, hook=lambda k, t: tri.seed_pose(fly.T(t), t) if k == 0 else None)
+    assert hist[-1][1].mode == Mode.TRACKING and len(calls) >= 20
+    assert calls[:3] == [True, True, True]
+    assert all(calls) != fine_only  # fine-only frames appear exactly when configured
+    errs = [pose_error(sv.T_sensor_target, fly.T(t)) for t, sv in hist[-5:] if sv.valid.position]
+    assert errs and max(e[0] for e in errs) < 0.05

@@ -860,14 +860,14 @@ class PAHDatabase:
         fit_thr = max(float(cfg.fit_inlier_m), 3.0 * sig_med)
         grid = self._fit_grid(max(float(cfg.fit_inlier_m), self.coverage_m))
         mc = prepare_model(self.target, _DENSE_POINTS)
-        # Per-point inlier distance of the hypothesis score: noise plus model sampling.
-        score_thr = 3.0 * sig + mc.spacing
         pre = P[rng.choice(n, size=min(n, int(cfg.precheck_points)), replace=False)]
         pre_a = pre[: max(10, int(cfg.precheck_points) // 4)]
         # The measured rays when given, else the lines of sight: ICP matches each point to the
-        # face its ray crosses, and the free-space test casts them.
-        rays = P / rng_norm[:, None] if directions is None else np.ascontiguousarray(D_all[ok])
-        scan = _Scan(P, sig, rng_norm, rays, score_thr, 3.0 * sig + _FREE_SPACE_MARGIN_M)
+        # face its ray crosses, and the free-space test casts them. Per-point inlier distance of
+        # the hypothesis score: noise plus model sampling.
+        scan = _Scan.build(P, sig, None if directions is None else np.ascontiguousarray(D_all[ok]),
+                           mc.spacing, ranges=rng_norm)
+        rays = scan.rays
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
         # Polygon vertices come from points with scan neighbours: a stray return floats alone,
@@ -1255,10 +1255,9 @@ class PAHDatabase:
             raise ValueError("verify_poses() needs the target: build() or load(path, target)")
         P = np.asarray(points, dtype=np.float64)
         sig = per_point_sigma(sigma, P.shape[0])
-        rng_norm = np.linalg.norm(P, axis=1)
-        rays = P / rng_norm[:, None] if directions is None else np.asarray(directions, dtype=np.float64)
         mc = prepare_model(self.target, _DENSE_POINTS)
-        scan = _Scan(P, sig, rng_norm, rays, 3.0 * sig + mc.spacing, 3.0 * sig + _FREE_SPACE_MARGIN_M)
+        rays = None if directions is None else np.asarray(directions, dtype=np.float64)
+        scan = _Scan.build(P, sig, rays, mc.spacing)
         fit, like, fs = self._verify(scan, np.asarray(Ts, dtype=np.float64).reshape(-1, 4, 4), mc)
         return fit, like - _UNEXPLAINED_PENALTY * ((1.0 - fit) + fs)
 
@@ -1417,6 +1416,16 @@ class _Scan:
     rays: FloatArray
     gate: FloatArray
     margin: FloatArray
+
+    @classmethod
+    def build(cls, P: FloatArray, sigma: FloatArray, rays: FloatArray | None, spacing: float,
+              ranges: FloatArray | None = None) -> _Scan:
+        """The scan of points ``P`` with range noise ``sigma``: gate ``3 sigma + spacing`` (the
+        model's sample spacing), free-space margin ``3 sigma + _FREE_SPACE_MARGIN_M``; rays are
+        the lines of sight when None."""
+        r = np.linalg.norm(P, axis=1) if ranges is None else ranges
+        d = P / r[:, None] if rays is None else rays
+        return cls(P, sigma, r, d, 3.0 * sigma + spacing, 3.0 * sigma + _FREE_SPACE_MARGIN_M)
 
 
 def _free_space_allowed(n_points: int) -> float:

@@ -317,8 +317,7 @@ def test_free_space_check_rejects_half_turn_flip_of_cygnss(cygnss_db: PAHDatabas
     cloud = scan(db.target, T, rng)
     P = cloud.points
     sig = np.broadcast_to(np.asarray(cloud.sigma, dtype=float), (len(P),))
-    r = np.linalg.norm(P, axis=1)
-    bundle = _Scan(P, sig, r, P / r[:, None], 3 * sig + mc.spacing, 3 * sig + 0.02)
+    bundle = _Scan.build(P, sig, None, mc.spacing)
     T_true = icp(P, mc, T, sigma=sig).T_sensor_target
     T_flip = icp(P, mc, T @ make_T(Rotation.from_rotvec([math.pi, 0, 0]).as_matrix()),
                  sigma=sig).T_sensor_target
@@ -425,8 +424,7 @@ def test_near_symmetric_alternatives_are_judged_with_the_symmetry_tolerance(
     T, cloud = bench_case(db.target, 178)
     mc = prepare_model(db.target)
     sig = np.broadcast_to(np.asarray(cloud.sigma, dtype=float), (len(cloud),))
-    r = np.linalg.norm(cloud.points, axis=1)
-    bundle = _Scan(cloud.points, sig, r, cloud.directions, 3 * sig + mc.spacing, 3 * sig + 0.02)
+    bundle = _Scan.build(cloud.points, sig, cloud.directions, mc.spacing)
     G = db.near_symmetries()
     k = int(np.argmin([pose_error(g, np.eye(4))[1] for g in G]))  # the smallest turn
     twin = icp(cloud.points, mc, T @ np.linalg.inv(G[k]), sigma=sig,
@@ -451,8 +449,7 @@ def test_free_space_acceptance_allows_for_the_beam_footprint(cygnss_db: PAHDatab
     T, cloud = bench_case(db.target, 191)
     mc = prepare_model(db.target)
     sig = np.broadcast_to(np.asarray(cloud.sigma, dtype=float), (len(cloud),))
-    r = np.linalg.norm(cloud.points, axis=1)
-    bundle = _Scan(cloud.points, sig, r, cloud.directions, 3 * sig + mc.spacing, 3 * sig + 0.02)
+    bundle = _Scan.build(cloud.points, sig, cloud.directions, mc.spacing)
     flip = icp(cloud.points, mc, T @ make_T(Rotation.from_rotvec([math.pi, 0, 0]).as_matrix()),
                sigma=sig, directions=cloud.directions, match_along_rays=True).T_sensor_target
     Ts = np.stack([T, flip])

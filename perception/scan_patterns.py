@@ -157,9 +157,7 @@ class ScanPattern:
         """Largest mirror angular acceleration [rad/s^2] of either axis, by finite differences."""
         if len(self) < 3:
             return 0.0
-        dt2 = np.diff(self.times)[:-1] * np.diff(self.times)[1:]
-        dt2 = np.where(dt2 > 0, dt2, np.inf)
-        return _peak_acceleration(self.az, self.el, dt2)
+        return _peak_acceleration(self.az, self.el, _step_products(self.times))
 
     def check_fov(self, fov_rad: float | npt.ArrayLike, tol: float = 1e-9) -> None:
         """Raise ``ValueError`` naming ``pattern`` if any angle lies outside the field of view."""
@@ -293,11 +291,18 @@ def _sample_grid(n: int, sample_rate_hz: float) -> tuple[FloatArray, FloatArray,
     :meth:`ScanPattern.peak_acceleration` for ``n`` samples (read-only, shared across frames)."""
     times = np.arange(n, dtype=np.float64) / sample_rate_hz
     s = np.arange(n, dtype=np.float64) / n
-    dt2 = np.diff(times)[:-1] * np.diff(times)[1:]
-    dt2 = np.where(dt2 > 0, dt2, np.inf)
+    dt2 = _step_products(times)
     for arr in (times, s, dt2):
         arr.setflags(write=False)
     return times, s, dt2
+
+
+def _step_products(times: FloatArray) -> FloatArray:
+    """``dt_i dt_(i+1)`` of consecutive sample steps (inf where a step is zero): the denominator
+    of the second differences in :func:`_peak_acceleration`."""
+    dt = np.diff(times)
+    dt2 = dt[:-1] * dt[1:]
+    return np.where(dt2 > 0, dt2, np.inf)
 
 
 def _peak_acceleration(az: FloatArray, el: FloatArray, dt2: FloatArray) -> float:

@@ -326,10 +326,9 @@ def test_cli_unreachable_scheduler_exit_code(tmp_path):
 @pytest.mark.slow
 def test_cli_campaign_killed_then_resumed(tmp_path):
     """A real interruption: SIGINT to the CLI mid-campaign, then the same command again."""
-    # Runs of ~0.3 s each (25-30 m approaches on truth+noise) and enough of them that the
-    # campaign cannot finish between the second part landing and the interrupt (8 runs of 4-6 m
-    # did, once, on a loaded machine).
-    n = 24
+    # Runs of ~0.3 s each (25-30 m approaches on truth+noise), enough that the campaign cannot
+    # finish between the second part landing and the interrupt.
+    n = 12
     path = write_yaml(tmp_path / "c.yaml", {
         **TINY, "runs": n, "max_steps": 3000,
         "dispersions": {**TINY["dispersions"], "env__initial__range_m": {"uniform": [25.0, 30.0]}},
@@ -337,7 +336,11 @@ def test_cli_campaign_killed_then_resumed(tmp_path):
     out = tmp_path / "o"
     cmd = [*CLI, "campaign", str(path), "--out", str(out),
            "--workers", "2", "--no-progress", "--no-plots"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # A job started in the background by a non-interactive shell (CI runners, `cmd &`) inherits
+    # SIGINT ignored, and Python then installs no KeyboardInterrupt handler: the CLI would ignore
+    # the interrupt and finish every run. Give it Ctrl-C's default disposition, as in a terminal.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 90
     while time.time() < deadline and len(list((out / "parts").glob("run_*.parquet"))) < 2:
         time.sleep(0.1)

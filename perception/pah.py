@@ -1589,7 +1589,7 @@ def _best(hyps: list[_Hypothesis], constraint: PoseConstraint | None) -> _Hypoth
 
 def _to_model(P: FloatArray, R: FloatArray, t: FloatArray) -> FloatArray:
     """Scan points (m, 3) into the model frame under K poses: (K, m, 3) = R_k^T (p - t_k)."""
-    return np.einsum("kmi,kij->kmj", P[None] - t[:, None, :], R)
+    return np.matmul(P[None] - t[:, None, :], R)  # (einsum is ~3x slower here)
 
 
 def _triangle_poses(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -1612,7 +1612,9 @@ def _triangle_poses(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArra
 
     Fs = frames(S[:, 0], S[:, 1], S[:, 2])
     Fq = frames(Q[0], Q[1], Q[2])
-    R = np.einsum("ij,kwj->kiw", Fq, Fs)
+    # R_k = Fq Fs_k^T, as one (3K, 3) x (3, 3) product (einsum is ~20x slower here).
+    K = Fs.shape[0]
+    R = np.ascontiguousarray((Fs.reshape(-1, 3) @ Fq.T).reshape(K, 3, 3).transpose(0, 2, 1))
     t = Q.mean(axis=0) - np.einsum("kij,kj->ki", R, S.mean(axis=1))
     return R, t
 

@@ -15,13 +15,16 @@ area is picked from the scan by greedy farthest-point selection from a random se
 the points that have scan neighbours (an isolated stray return would otherwise be picked first).
 All model polygons whose pairwise distances match the scan polygon's within the tolerance are
 enumerated by a partial tree traversal (first edge from the length table, each further vertex
-from the connectivity rows of the vertices matched so far), vectorised over the partial matches.
+from the connectivity rows of the vertices matched so far: vertex 0's distance band is a run of
+its row sorted by length, the other vertices' rows test only that run), vectorised over the
+partial matches.
 Each match gives a pose ``p = R s + T`` (eq. 1) by a batched SVD; matches that are mirror images,
 that show back faces to the sensor or (constrained search) that fall outside the approach corridor
 are dropped before any fit check. The survivors are scored by a surface-fit precheck on a
 decimated scan (an occupancy grid of the voxels near the model surface, O(1) per point), the best
 few by the full O(n) check against the dense model's KD-tree, and the distinct best ones are
-polished by a short ICP and verified on the whole scan.
+polished by a short ICP (one start per basin: a start near one already polished slides to the same
+pose) and verified on the whole scan.
 
 Verification (Figure 2's fit check, plus free space): besides the surface fit, every scan ray is
 cast against the model under the hypothesis (one Embree call for all hypotheses); a point measured
@@ -40,7 +43,10 @@ other basins are refined by a full ICP along the measured rays (each point match
 ray crosses) and the best verified one is returned.
 
 Several scans (:meth:`PAHDatabase.localize_scans`, section 3.1.2's "newly acquired point clouds
-over time"): successive scans of one static relative pose are pooled and localized as one cloud.
+over time"): successive scans of one static relative pose are pooled and localized as one cloud
+(in a corridor, the fit check of the matches and the short screening ICPs run on one scan's worth
+of the pooled points; the verification of every hypothesis and the final ICP always on all of
+them).
 On sparse scans (100-300 points on a 1 m target, or on CYGNSS at tens of metres) one scan leaves
 the final ICP noise-limited (Cramer-Rao bound up to 1-2 deg per axis), and leaves the small features that tell the
 cubesat's bus from its quarter and half turns unsampled; two or three scans fix both.
@@ -403,6 +409,7 @@ class PAHDatabase:
         self.bin_ptr = bin_ptr
         self.dist = dist
         self._cluster_cache: dict[float, tuple[IntArray, int]] = {}
+        self._rows_cache: tuple[IntArray, FloatArray, FloatArray, float] | None = None
         self.max_length_m = float(seg_len[-1]) if seg_len.size else 0.0
         self.target: TargetModel | None = None
         if target is not None:
@@ -565,9 +572,11 @@ class PAHDatabase:
         """All model polygons whose pairwise distances match a scan polygon's (partial traversal).
 
         The first edge comes from the length table; each further vertex ``k`` is the set of model
-        points whose distances to the already matched vertices all match, found as the AND of
-        rows of the connectivity table banded at ``|dist - d_vk| <= tol`` (one boolean row per
-        partial match, vectorised over the partial matches).
+        points whose distances to the already matched vertices all match, the AND of rows of the
+        connectivity table banded at ``|dist - d_vk| <= tol``, vectorised over the partial
+        matches: vertex 0's band is a run of its row sorted by length (one ``searchsorted`` for
+        all partial matches), and only the points of that run are tested against the others
+        (:meth:`_banded`).
 
         Partial matches are pruned as early as they can be judged, so that the tree stays small:
 
@@ -615,14 +624,17 @@ class PAHDatabase:
         cap = int(self.config.max_candidates)
         S = self.points
         use_dir = R_nominal is not None
-        E = (Qa - Qa[0]) @ np.asarray(R_nominal, dtype=np.float64) if use_dir else None
-
-        def dir_ok(k: int, model_vec: FloatArray) -> npt.NDArray[np.bool_]:
-            assert E is not None and direction_tol_rad is not None
-            slack = math.asin(min(1.0, 2.0 * tolerance_m / max(dq[0, k], 1e-9)))
-            lim = math.cos(min(math.pi, float(direction_tol_rad) + slack))
-            ln = np.linalg.norm(model_vec, axis=1) * dq[0, k]
-            return model_vec @ E[k] >= lim * ln
+        # Direction test of an edge (s_0, s_k): (s_k - s_0) . e_k >= cos(angle) |s_k - s_0| |e_k|
+        # with e_k = R_nominal^T (q_k - q_0); the projections s . e_k of all model points once.
+        proj: FloatArray | None = None
+        lims = np.zeros(n_poly)
+        if use_dir:
+            assert direction_tol_rad is not None
+            E = (Qa - Qa[0]) @ np.asarray(R_nominal, dtype=np.float64)
+            proj = S @ E.T
+            for k in range(1, n_poly):
+                slack = math.asin(min(1.0, 2.0 * tolerance_m / max(dq[0, k], 1e-9)))
+                lims[k] = math.cos(min(math.pi, float(direction_tol_rad) + slack)) * dq[0, k]
 
         def visible(k: int, idx: IntArray, R: FloatArray) -> npt.NDArray[np.bool_]:
             assert ray_a is not None
@@ -640,20 +652,16 @@ class PAHDatabase:
         keep = np.abs(self.seg_len[sl] - d) <= tolerance_m
         a, c = self.seg_i[sl][keep], self.seg_j[sl][keep]
         cand = np.concatenate([np.stack([a, c], 1), np.stack([c, a], 1)])
-        if use_dir and cand.shape[0]:
-            cand = cand[dir_ok(1, S[cand[:, 1]] - S[cand[:, 0]])]
+        if proj is not None and cand.shape[0]:
+            ln = np.concatenate([self.seg_len[sl][keep]] * 2)
+            cand = cand[proj[cand[:, 1], 1] - proj[cand[:, 0], 1] >= lims[1] * ln]
         cand = self._cap(cand, cap, rng)
         # Further levels: AND of the banded connectivity rows of the matched vertices.
         for k in range(2, n_poly):
             if cand.shape[0] == 0:
                 break
-            ok = np.abs(self.dist[cand[:, 0]] - dq[0, k]) <= tolerance_m
-            for v in range(1, k):
-                ok &= np.abs(self.dist[cand[:, v]] - dq[v, k]) <= tolerance_m
-            owner, new = np.nonzero(ok)
-            if use_dir and new.shape[0]:
-                keep_dir = dir_ok(k, S[new] - S[cand[owner, 0]])
-                owner, new = owner[keep_dir], new[keep_dir]
+            owner, new = self._banded(cand, dq[:k, k], tolerance_m,
+                                      None if proj is None else proj[:, k], lims[k])
             if k >= 3 and new.shape[0]:
                 # Past the first triangle its pose predicts where the vertex lies on the model:
                 # of the points in the distance bands (about that spot and its mirror image
@@ -675,6 +683,57 @@ class PAHDatabase:
         if cand.shape[0] == 0 or cand.shape[1] < n_poly:
             return np.empty((0, n_poly), dtype=np.int64)
         return cand
+
+    def _banded(
+        self, cand: IntArray, d: FloatArray, tol: float, proj: FloatArray | None = None,
+        lim: float = 0.0,
+    ) -> tuple[IntArray, IntArray]:
+        """Next-vertex candidates of partial matches ``cand`` (K, k): the (owner o, point j) pairs
+        with ``|dist[cand[o, v], j] - d[v]| <= tol`` for every matched vertex ``v`` and, with
+        ``proj`` (M,) (the model points projected on the nominal edge direction), the edge from
+        vertex 0 pointing that way: ``proj[j] - proj[cand[o, 0]] >= lim dist[cand[o, 0], j]``.
+        Ordered by owner, then point (as ``np.nonzero`` over a dense (K, M) test).
+
+        Vertex 0's band is a contiguous run of its row of the connectivity table sorted by length
+        (:meth:`_sorted_rows`), found by one ``searchsorted`` for all partial matches; only those
+        points are tested further. Cost O(K x band) instead of O(K x M).
+        """
+        order, sdist, keys, stride = self._sorted_rows()
+        m = self.dist.shape[0]
+        c0 = cand[:, 0]
+        base = c0.astype(np.float64) * stride
+        row0 = c0 * m
+        # Slightly wide bounds; the exact tests below decide.
+        lo = np.clip(np.searchsorted(keys, base + (d[0] - tol - 1e-9), side="left"), row0, row0 + m)
+        hi = np.clip(np.searchsorted(keys, base + (d[0] + tol + 1e-9), side="right"), lo, row0 + m)
+        owner, pos = _ragged(lo, hi)
+        new = order[pos]
+        d0 = sdist[pos]
+        ok = np.abs(d0 - d[0]) <= tol
+        if proj is not None:
+            ok &= proj[new] - proj[c0[owner]] >= lim * d0
+        owner, new = owner[ok], new[ok]
+        if d.shape[0] > 1:
+            flat = self.dist.reshape(-1)
+            ok = np.abs(flat[cand[owner, 1] * m + new] - d[1]) <= tol
+            for v in range(2, d.shape[0]):
+                ok &= np.abs(flat[cand[owner, v] * m + new] - d[v]) <= tol
+            owner, new = owner[ok], new[ok]
+        key = np.sort(owner * m + new)
+        return key // m, key % m
+
+    def _sorted_rows(self) -> tuple[IntArray, FloatArray, FloatArray, float]:
+        """Rows of the connectivity table sorted by length, flattened: ``order`` (M * M,) point
+        indices, ``sdist = dist[i, order]``, ``keys = i * stride + sdist`` (ascending) and
+        ``stride`` [m]."""
+        if self._rows_cache is None:
+            m = self.dist.shape[0]
+            srt = np.argsort(self.dist, axis=1, kind="stable")
+            stride = 2.0 * float(self.dist.max()) + 1.0
+            sdist = np.take_along_axis(self.dist, srt, axis=1)
+            keys = sdist + stride * np.arange(m)[:, None]
+            self._rows_cache = (srt.ravel().astype(np.int64), sdist.ravel(), keys.ravel(), stride)
+        return self._rows_cache
 
     def _merge(self, cand: IntArray, dq: FloatArray, merge_m: float) -> IntArray:
         """One partial match (K, k) per tuple of model-point clusters: the best-fitting one."""
@@ -765,12 +824,15 @@ class PAHDatabase:
         sigma: float | npt.ArrayLike | None = None,
         max_time_s: float | None = None,
         directions: npt.ArrayLike | None = None,
+        *,
+        search_points: int | None = None,
     ) -> RegistrationResult:
         """Find the target pose in a scan without an initial guess (seed 000 section 3.1.2).
 
         For each polygon: match it, fit a pose per match, drop mirror images, back-facing and
         (constrained) out-of-corridor poses, precheck the survivors on a decimated scan, check the
-        best few on the whole scan, and polish the distinct best ones by a short ICP scored on the
+        best few on the whole scan (or the ``search_points`` subset), and polish the distinct
+        best ones by a short ICP (one start per basin; on the subset, if any) scored on the
         whole scan, surface fit and free space (so that near-symmetric alternatives are
         compared, not the first one taken); the leader's near-symmetric alternatives are
         verified too. It stops when a verified leader scores ``accept_fitness`` with (almost) no
@@ -790,6 +852,13 @@ class PAHDatabase:
             directions: (N, 3) measured ray directions [sensor frame] (``PointCloud.directions``);
                 default: the lines of sight ``points / |points|``. Every ICP matches points to
                 the face their ray crosses, and the free-space test casts these rays.
+            search_points: when the scan has more points, the fit check of the best matches and
+                the short screening ICPs (the stages whose cost grows with the scan) run on a
+                random subset of this many points (drawn from ``rng``); polygons are picked from,
+                and every hypothesis is verified and the final ICP run on, all the points. Meant
+                for scans pooled in a corridor (:meth:`localize_scans`), where one scan's worth of
+                points finds the candidates and the rest tell them apart and refine the winner.
+                None: all points everywhere.
 
         Returns:
             The ICP-refined :class:`RegistrationResult` of the best hypothesis; ``iterations`` is
@@ -799,7 +868,8 @@ class PAHDatabase:
 
         Raises:
             ValueError: points not (N, 3), ``rng`` not a Generator, a bad ``constraint``,
-                ``sigma``, ``max_time_s`` or ``directions``, or a database without a target.
+                ``sigma``, ``max_time_s``, ``directions`` or ``search_points``, or a database
+                without a target.
         """
         t_start = time.perf_counter()
         P_all = validate_points(points, "points")
@@ -817,6 +887,11 @@ class PAHDatabase:
             raise ValueError(
                 f"max_time_s={max_time_s!r}; expected a budget > 0 [s] (math.inf: none) or None"
             )
+        if search_points is not None and not (
+            isinstance(search_points, (int, np.integer)) and not isinstance(search_points, bool)
+            and search_points >= 1
+        ):
+            raise ValueError(f"search_points={search_points!r}; expected an int >= 1 or None")
         if self.target is None:
             raise ValueError(
                 f"PAH database of {self.target_name!r} has no target; pass target= to load() or "
@@ -868,6 +943,12 @@ class PAHDatabase:
         scan = _Scan.build(P, sig, None if directions is None else np.ascontiguousarray(D_all[ok]),
                            mc.spacing, ranges=rng_norm)
         rays = scan.rays
+        search = scan
+        if search_points is not None and search_points < n:
+            # The O(n) stages of the search on a random subset (see search_points).
+            sub = np.sort(rng.choice(n, size=max(int(search_points), min_pts), replace=False))
+            search = _Scan(P[sub], sig[sub], rng_norm[sub], rays[sub], scan.gate[sub],
+                           scan.margin[sub])
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
         # Polygon vertices come from points with scan neighbours: a stray return floats alone,
@@ -921,9 +1002,9 @@ class PAHDatabase:
             score_b = grid.inside(_to_model(pre, R, t)).mean(axis=1)
             top = np.argsort(-score_b, kind="stable")[:_FULL_CHECK]
             # Full O(n) check of the best few on the dense model's KD-tree.
-            dist, _ = mc.kdtree.query(_to_model(P, R[top], t[top]).reshape(-1, 3), k=1,
+            dist, _ = mc.kdtree.query(_to_model(search.P, R[top], t[top]).reshape(-1, 3), k=1,
                                       distance_upper_bound=fit_thr)
-            fit = np.isfinite(dist).reshape(top.size, n).mean(axis=1)
+            fit = np.isfinite(dist).reshape(top.size, search.P.shape[0]).mean(axis=1)
             order = np.argsort(-fit, kind="stable")
             starts = []
             for j in order[:_SCREEN_PER_POLYGON]:
@@ -932,14 +1013,14 @@ class PAHDatabase:
                 T0 = _pose(R[top[j]], t[top[j]])
                 if not any(_same_pose(T0, h.T) for h in hyps):
                     starts.append(T0)
-            new = self._screen(scan, starts, hyps, mc, screen_cfg)
+            new = self._screen(scan, starts, hyps, mc, screen_cfg, search)
             hyps += new
             best = _best(hyps, constraint)
             # Verify the leader against the poses it could be confused with (half turns of a
             # long body, quarter turns of a square one): one of them may be the truth.
             if best is not None and not best.expanded:
                 best.expanded = True
-                hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint)
+                hyps += self._alternatives(best, scan, hyps, mc, screen_cfg, constraint, search)
                 best = _best(hyps, constraint)
             if best is not None:
                 self._beam_check(scan, best, mc)
@@ -994,10 +1075,20 @@ class PAHDatabase:
         target at one pose in one sensor frame (a station-keeping chaser and a target that does
         not turn appreciably over the scans, or scans already compensated for the motion): their
         points, noise and measured rays are pooled and localized as one cloud by
-        :meth:`localize`, so polygons, the fit and free-space checks and the final ICP all use
-        every scan. Two or three scans halve the pose noise of a sparse scan's ICP and sample
-        more of the small features (antenna, port ring, nozzle) that tell a box-shaped body from
-        its quarter and half turns.
+        :meth:`localize`: polygons are picked from the pooled cloud, and every hypothesis is
+        verified (surface fit and free space) and the final ICP run on all of it. Two or three
+        scans halve the pose noise of a sparse scan's ICP and sample more of the small features
+        (antenna, port ring, nozzle) that tell a box-shaped body from its quarter and half turns.
+
+        With a ``constraint``, the search's work per candidate, the fit check of the best matches
+        and the short screening ICPs, runs on a random subset of the pooled points the size of
+        the largest scan (``search_points`` of :meth:`localize`), so that K scans cost little more
+        than one: the corridor leaves few candidates, all near the nominal attitude, and one
+        scan's worth of points finds them; the pool then decides between them and refines the
+        winner (acquisition benchmark, 3 scans, 200 cases per target: 100 % success either way;
+        median 0.052 -> 0.038 s on the cubesat, 0.044 -> 0.033 s on CYGNSS). Unconstrained the
+        whole pool is searched: there the screening ICPs on the subset ended in wrong basins (or
+        the time budget ran out) more often, 97.5 % against 99.5 % success on the cubesat.
 
         Nothing here checks that the scans share one pose (the fit of a box turned by 15 deg
         between scans hardly drops): pool only scans the caller knows to be of one pose.
@@ -1025,8 +1116,11 @@ class PAHDatabase:
         sig = np.concatenate([np.broadcast_to(np.asarray(c.sigma, dtype=np.float64), (len(c),))
                               for c in scans])
         D = np.concatenate([c.directions for c in scans])
+        # In a corridor the search works on one scan's worth of the pooled points (verification
+        # and the final ICP on all of them); unconstrained it searches them all (see above).
+        search = max(len(c) for c in scans) if constraint is not None else None
         res = self.localize(P, rng, constraint=constraint, sigma=sig, max_time_s=max_time_s,
-                            directions=D)
+                            directions=D, search_points=search)
         return res
 
     def _refine(
@@ -1094,14 +1188,28 @@ class PAHDatabase:
         known: list[_Hypothesis],
         mc: ModelCloud,
         icp_cfg: ICPConfig,
+        icp_scan: _Scan | None = None,
     ) -> list[_Hypothesis]:
-        """Short ICP from each start pose, then one batched verification of the distinct results."""
+        """Short ICP from each start pose (on ``icp_scan``, default ``scan``), then one batched
+        verification of the distinct results on ``scan``.
+
+        A start within ``_BASIN_M`` / ``_BASIN_RAD`` of an earlier start or of its result is in
+        that basin and is skipped (its ICP would slide to the same pose, a duplicate dropped
+        anyway): the best few matches of a polygon are usually neighbouring model points.
+        """
         Ts: list[FloatArray] = []
         settled: list[bool] = []
+        sc = scan if icp_scan is None else icp_scan
+        tried: list[FloatArray] = []
         for T0 in starts:
-            r = icp(scan.P, mc, T0, sigma=scan.sigma, config=icp_cfg, directions=scan.rays,
+            # A start in the basin of one already polished (near it or its result) would only
+            # slide to the same pose.
+            if any(_same_pose(T0, U, _BASIN_M, _BASIN_RAD) for U in tried):
+                continue
+            r = icp(sc.P, mc, T0, sigma=sc.sigma, config=icp_cfg, directions=sc.rays,
                     match_along_rays=True)
             T = r.T_sensor_target
+            tried += [T0, T]
             if not any(_same_pose(T, h.T) for h in known) and not any(_same_pose(T, U) for U in Ts):
                 Ts.append(T)
                 settled.append(r.converged)
@@ -1137,6 +1245,7 @@ class PAHDatabase:
         mc: ModelCloud,
         icp_cfg: ICPConfig,
         constraint: PoseConstraint | None,
+        icp_scan: _Scan | None = None,
     ) -> list[_Hypothesis]:
         """The near-symmetric alternatives of a hypothesis, polished and verified.
 
@@ -1164,7 +1273,7 @@ class PAHDatabase:
         fit, _, _ = self._verify(loose, Ts, mc, free_space=False)
         order = np.argsort(-fit, kind="stable")[:_ALTERNATIVES_SCREENED]
         starts = [Ts[i] for i in order if fit[i] >= 0.5 * h.fitness]
-        return self._screen(scan, starts, known, mc, icp_cfg)
+        return self._screen(scan, starts, known, mc, icp_cfg, icp_scan)
 
     def _verify(
         self, scan: _Scan, Ts: FloatArray, mc: ModelCloud, free_space: bool = True,
@@ -1480,7 +1589,7 @@ def _best(hyps: list[_Hypothesis], constraint: PoseConstraint | None) -> _Hypoth
 
 def _to_model(P: FloatArray, R: FloatArray, t: FloatArray) -> FloatArray:
     """Scan points (m, 3) into the model frame under K poses: (K, m, 3) = R_k^T (p - t_k)."""
-    return np.einsum("kmi,kij->kmj", P[None] - t[:, None, :], R)
+    return np.matmul(P[None] - t[:, None, :], R)  # (einsum is ~3x slower here)
 
 
 def _triangle_poses(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -1503,7 +1612,9 @@ def _triangle_poses(S: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArra
 
     Fs = frames(S[:, 0], S[:, 1], S[:, 2])
     Fq = frames(Q[0], Q[1], Q[2])
-    R = np.einsum("ij,kwj->kiw", Fq, Fs)
+    # R_k = Fq Fs_k^T, as one (3K, 3) x (3, 3) product (einsum is ~20x slower here).
+    K = Fs.shape[0]
+    R = np.ascontiguousarray((Fs.reshape(-1, 3) @ Fq.T).reshape(K, 3, 3).transpose(0, 2, 1))
     t = Q.mean(axis=0) - np.einsum("kij,kj->ki", R, S.mean(axis=1))
     return R, t
 

@@ -233,6 +233,46 @@ def test_corridor_pruning_never_discards_the_true_pose(cubesat_db: PAHDatabase) 
     assert n_near >= 5  # the property was exercised (7 of the 12 polygons)
 
 
+@pytest.mark.parametrize("name", ["cubesat", "cygnss"])
+def test_banded_lookup_gives_exactly_the_dense_band_test(name: str) -> None:
+    # The next-vertex lookup (vertex 0's band as a run of its sorted connectivity row, the other
+    # vertices tested on that run only) must give the very pairs, in the very order, of the dense
+    # AND over the (K, M) table, direction test included: match_polygon is unchanged by it.
+    db = PAHDatabase.build(load_target(name))
+    S, D = db.points, db.dist
+    m = S.shape[0]
+    rng = np.random.default_rng(11)
+    n_pairs = 0
+    for trial in range(12):
+        k = 1 + trial % 3
+        idx = rng.choice(m, size=k + 1, replace=False)
+        d = D[idx[:k], idx[k]].copy()
+        if trial == 0:
+            d[0] = 0.02  # a band reaching below zero length (the vertex itself is in it)
+        tol = [0.03, 0.08, 0.15][trial % 3]
+        cand = np.vstack([idx[:k], rng.integers(m, size=(400, k))])
+        # A nominal edge direction 10 deg off the true one, and a 25 deg cone about it.
+        e = Rotation.from_rotvec(rng.normal(size=3) * math.radians(10) / math.sqrt(3)).apply(
+            S[idx[k]] - S[idx[0]])
+        proj = S @ e
+        lim = math.cos(math.radians(25)) * float(np.linalg.norm(e))
+        for use_dir in (False, True):
+            ok = np.ones((cand.shape[0], m), dtype=bool)
+            for v in range(k):
+                ok &= np.abs(D[cand[:, v]] - d[v]) <= tol
+            if use_dir:
+                ok &= proj[None, :] - proj[cand[:, 0]][:, None] >= lim * D[cand[:, 0]]
+            owner, new = np.nonzero(ok)
+            got = db._banded(cand, d, tol, proj if use_dir else None, lim)
+            np.testing.assert_array_equal(got[0], owner)
+            np.testing.assert_array_equal(got[1], new)
+            if trial:
+                # The true next vertex is found from the true partial match (row 0).
+                assert np.any((got[0] == 0) & (got[1] == idx[k]))
+            n_pairs += owner.size
+    assert n_pairs > 10_000  # the bands were not trivially empty
+
+
 # ---------------------------------------------------------------------------------------------
 # Localization
 # ---------------------------------------------------------------------------------------------
@@ -391,11 +431,19 @@ def test_time_budget_exceeded_is_not_converged_with_a_reason(cubesat_db: PAHData
 
 def bench_case(target: TargetModel, case: int) -> tuple[np.ndarray, object]:
     """True pose and first scan of acquisition benchmark case ``case`` (as `bench registration`)."""
+    T, cloud, _ = bench_case_corridor(target, case)
+    return T, cloud
+
+
+def bench_case_corridor(target: TargetModel, case: int) -> tuple[np.ndarray, object, PoseConstraint]:
+    """True pose, first scan and docking corridor of benchmark case ``case``."""
     lo, hi = {"cubesat": (2.0, 10.0), "cygnss": (5.0, 50.0)}[target.name]
     rng = np.random.default_rng([1000, case])
     R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
     T = make_T(R, [0.0, 0.0, rng.uniform(lo, hi)])
-    return T, scan(target, T, rng)
+    cloud = scan(target, T, rng)
+    R_nom = Rotation.from_rotvec(rng.normal(scale=np.radians(5.0), size=3)).as_matrix() @ R
+    return T, cloud, PoseConstraint(R_nom, np.radians(20.0), np.radians(15.0), 1.0, 100.0)
 
 
 @pytest.mark.parametrize("case", [19, 2, 43, 88, 178])
@@ -503,6 +551,86 @@ def test_three_scans_acquire_where_one_does_not(name: str, case: int) -> None:
     np.testing.assert_array_equal(pooled.T_sensor_target, three.T_sensor_target)
 
 
+@pytest.mark.parametrize(("name", "cases"), [("cubesat", (23, 0, 1)), ("cygnss", (46, 92, 191))])
+def test_three_scans_in_a_corridor_search_one_scans_worth_and_verify_on_all(
+    name: str, cases: tuple[int, ...], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Constrained, localize_scans searches a random subset of the pool the size of its largest
+    # scan (the short screening ICPs see that many points) and verifies and refines on all of
+    # it (the final ICP sees the whole pool). Benchmark cases (scans and corridors as `bench
+    # registration`): cubesat 23 and cygnss 46, 92, 191 miss with one scan in the corridor;
+    # pooled, they and the others land within 5 cm and 2 deg.
+    import perception.pah as pah_module
+
+    db = PAHDatabase.build(load_target(name))
+    sizes: list[tuple[int, bool]] = []
+    orig_icp = pah_module.icp
+
+    def icp_spy(points, model, T0, **kw):
+        sizes.append((len(points), kw.get("config") is not None))  # config: the short ICP
+        return orig_icp(points, model, T0, **kw)
+
+    monkeypatch.setattr(pah_module, "icp", icp_spy)
+    for case in cases:
+        T, cloud, corridor = bench_case_corridor(db.target, case)
+        if case in (23, 46, 92, 191):
+            one = db.localize(cloud.points, np.random.default_rng([1000, case, 2]),
+                              constraint=corridor, sigma=cloud.sigma, directions=cloud.directions)
+            e1_m, e1_deg = pose_error(one.T_sensor_target, T)
+            assert e1_m > 0.05 or e1_deg > 2.0, (case, e1_m, e1_deg)
+        scans = [cloud, *more_scans(db.target, T, case, 3)]
+        n_all, n_max = sum(len(c) for c in scans), max(len(c) for c in scans)
+        sizes.clear()
+        res = db.localize_scans(scans, np.random.default_rng([1000, case, 2]), constraint=corridor)
+        e_m, e_deg = pose_error(res.T_sensor_target, T)
+        assert e_m < 0.05 and e_deg < 2.0, (case, e_m, e_deg)
+        assert res.n_points == n_all
+        assert {n for n, short in sizes if short} == {n_max}, (case, sizes)
+        assert {n for n, short in sizes if not short} == {n_all}, (case, sizes)
+        # It is localize() on the pooled cloud with that search size; same seed, same pose.
+        pooled = db.localize(np.concatenate([c.points for c in scans]),
+                             np.random.default_rng([1000, case, 2]), constraint=corridor,
+                             sigma=np.concatenate([c.sigma for c in scans]),
+                             directions=np.concatenate([c.directions for c in scans]),
+                             search_points=n_max)
+        np.testing.assert_array_equal(pooled.T_sensor_target, res.T_sensor_target)
+
+
+def test_screening_polishes_one_start_per_basin(
+    cubesat_db: PAHDatabase, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Starts in the basin of one already polished (near it or near its result) slide to the same
+    # pose: one short ICP each for the truth's basin and for its quarter turn, not four.
+    import perception.pah as pah_module
+
+    db = cubesat_db
+    T, cloud = bench_case(db.target, 0)
+    mc = prepare_model(db.target)
+    bundle = _Scan.build(cloud.points, cloud.sigma, cloud.directions, mc.spacing)
+    calls: list[np.ndarray] = []
+    orig_icp = pah_module.icp
+
+    def icp_spy(points, model, T0, **kw):
+        calls.append(T0)
+        return orig_icp(points, model, T0, **kw)
+
+    monkeypatch.setattr(pah_module, "icp", icp_spy)
+
+    def nudge(rotvec_deg: list[float], dt: list[float]) -> np.ndarray:
+        """T turned about the target origin and moved [m]."""
+        dR = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+        return make_T(dR @ T[:3, :3], T[:3, 3] + dt)
+
+    quarter = T @ make_T(Rotation.from_rotvec([0, 0, math.pi / 2]).as_matrix(), [0, 0, 0])
+    starts = [nudge([2, -1, 1], [0.02, 0.0, -0.01]), nudge([-3, 2, 0], [0.0, -0.03, 0.02]),
+              quarter, quarter @ make_T(Rotation.from_rotvec([0.05, 0, 0]).as_matrix(), [0, 0, 0])]
+    hyps = db._screen(bundle, starts, [], mc, ICPConfig(max_iterations=12))
+    assert len(calls) == 2
+    assert calls[0] is starts[0] and calls[1] is starts[2]
+    e_m, e_deg = pose_error(hyps[0].T, T)
+    assert e_m < 0.02 and e_deg < 2.0 and hyps[0].fitness > 0.98, (e_m, e_deg)
+
+
 def test_localize_scans_rejects_bad_scans(cubesat_db: PAHDatabase) -> None:
     rng = np.random.default_rng(0)
     with pytest.raises(ValueError, match="scans"):
@@ -532,6 +660,9 @@ def test_bad_clouds_fail_softly_and_bad_arguments_raise(cubesat_db: PAHDatabase)
         cubesat_db.localize(np.ones((10, 3)), rng, sigma=np.ones(3))
     with pytest.raises(ValueError, match="constraint"):
         cubesat_db.localize(np.ones((10, 3)), rng, constraint="corridor")  # type: ignore[arg-type]
+    for bad in (0, True, 2.5):
+        with pytest.raises(ValueError, match="search_points"):
+            cubesat_db.localize(np.ones((10, 3)), rng, search_points=bad)  # type: ignore[arg-type]
 
 
 @pytest.mark.slow

@@ -294,8 +294,9 @@ class ICPConfig(StrictModel):
     )
     match_along_rays: bool = Field(
         False, description="match each point to the face its measured ray crosses (unbiased near "
-        "edges; PAH turns it on). Off in tracking: closed-loop docking on the iss_port model was "
-        "worse with it (the demo's max error 92 cm / 17 deg vs 15 cm / 2 deg)"
+        "edges; PAH turns it on). Off by default in tracking: closed-loop docking on the iss_port "
+        "model was worse with it at all ranges (the demo's max error 92 cm / 17 deg vs 15 cm / 2 "
+        "deg); its missions turn it on for triangulation data (icp_triangulation)"
     )
 
 

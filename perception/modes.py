@@ -16,8 +16,10 @@ database" of section 5.3, kept free of sensors and estimators so it can be teste
 * **planned restarts** every ``restart_period_s`` (300 s in the flights) drop to search (or bearing
   when far) and must reacquire.
 
-Tracker settings differ on triangulation data (below the sensor's transition range), as the seed
-notes: ``icp_triangulation`` when given, else ``icp``.
+Tracker settings differ on triangulation data, as the seed notes: ``icp_triangulation`` (when
+given) for a scan whose points came mostly from the triangulation subsystem, else ``icp``. The
+scan's own points decide, not the distance to the target's origin: on a large target the port the
+sensor looks at can be inside the transition range while the origin is well outside it.
 """
 
 from __future__ import annotations
@@ -25,9 +27,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from perception.config import ICPConfig, PipelineConfig
 from perception.geometry import pose_error
+from perception.pointcloud import Subsystem
 from perception.state import Mode
 
 __all__ = ["ModeEvent", "FrameVerdict", "ModeLogic"]
@@ -96,10 +100,17 @@ class ModeLogic:
             return "docking_area"
         return "port"
 
-    def icp_config_for_range(self, range_m: float) -> ICPConfig:
-        """Tracker settings for the subsystem that ranges at this distance."""
-        if range_m < self.transition_range_m and self.cfg.icp_triangulation is not None:
-            return self.cfg.icp_triangulation
+    def icp_config_for(self, subsystem: npt.ArrayLike) -> ICPConfig:
+        """Tracker settings for the subsystem that produced most of a scan's points.
+
+        Args:
+            subsystem: the scan's per-point :class:`~perception.pointcloud.Subsystem` codes
+                (``PointCloud.subsystem``).
+        """
+        s = np.asarray(subsystem)
+        tri = self.cfg.icp_triangulation
+        if tri is not None and 2 * np.count_nonzero(s == int(Subsystem.TRIANGULATION)) > s.size:
+            return tri
         return self.cfg.icp
 
     # ------------------------------------------------------------------ transitions

@@ -369,7 +369,7 @@ class TriDAR:
         t_ref = float(np.mean(cloud.times))
         constraint = self._constraint()
         sigma = cloud.sigma
-        icp_cfg = self.logic.icp_config_for_range(out.range_m)
+        icp_cfg = self.logic.icp_config_for(cloud.subsystem)
         expected = max(median(sigma), self.pc.measurement_floor_m)
         res, admitted, verdict, from_track = None, False, None, None
         lost = self._lost_track
@@ -452,13 +452,12 @@ class TriDAR:
         t_ref = float(0.5 * (cloud.t_start + cloud.t_end))
         pts = deskew(cloud, f, t_ref)
         T_pred = f.pose_at(t_ref)
-        rng_m = float(np.linalg.norm(T_pred[:3, 3]))
         # On an established track (rates estimated, the last frames accepted) the prediction is
         # within a few sigma of the answer: ICP starts in its fine phase.
         settled = (self.pc.fine_only_tracking and self._n_updates >= 3
                    and self.logic.bad_frames == 0 and self._gate_rejects == 0)
         res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
-                  config=self.logic.icp_config_for_range(rng_m), coarse=not settled)
+                  config=self.logic.icp_config_for(cloud.subsystem), coarse=not settled)
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), self.pc.measurement_floor_m)
@@ -492,7 +491,7 @@ class TriDAR:
         if verdict.good and self.pc.symmetry_check_period_s is not None and self._n_updates > 0 \
                 and t_ref - self._sym_checked_t >= self.pc.symmetry_check_period_s - 1e-9:
             self._sym_checked_t = t_ref
-            self._check_symmetry(pts, cloud, res, t_ref, rng_m)
+            self._check_symmetry(pts, cloud, res, t_ref)
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
@@ -502,7 +501,7 @@ class TriDAR:
         self._outputs.append(out)
 
     def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
-                        t_ref: float, rng_m: float) -> None:
+                        t_ref: float) -> None:
         """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
 
         ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model; a converged
@@ -522,7 +521,7 @@ class TriDAR:
         # Turns that show the sensor another side of the target explain little even before ICP:
         # only the near-fits are polished (with capped work: a turn that is not a better basin
         # need not converge) and scored again.
-        cfg = self.logic.icp_config_for_range(rng_m)
+        cfg = self.logic.icp_config_for(cloud.subsystem)
         cfg = cfg.model_copy(update={"max_iterations": min(cfg.max_iterations, 10)})
         alts: list[tuple[int, RegistrationResult]] = []
         for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):

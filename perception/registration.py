@@ -388,9 +388,11 @@ class FaceGrid:
             # Ray parameter of each candidate plane's crossing (lam along the ray from the point)
             # and the edge tests at the crossing; the nearest crossing inside its facet wins.
             md = np.einsum("kij,kj->ki", pl[:, 1:, :3], rd)
+            # A plane parallel to the ray (nd = 0) has no crossing: lam is inf or nan there and
+            # its edge test below fails (nan compares false).
             with np.errstate(divide="ignore", invalid="ignore"):
                 lam = -v[:, 0] / nd
-            vin = v[:, 1:] + lam[:, None] * md
+                vin = v[:, 1:] + lam[:, None] * md
             vmax = np.maximum(np.maximum(vin[:, 0], vin[:, 1]), vin[:, 2])
             hit = (nd < -1e-6) & (vmax <= 1e-9) & np.isfinite(d2)
             key = np.where(hit, lam * lam, np.inf)

@@ -333,6 +333,27 @@ def _frustum(
     return m
 
 
+def _petal(
+    angle_deg: float, radius: float, base: float, height: float, depth: float, plane: float
+) -> trimesh.Trimesh:
+    """A docking-mechanism guide petal on a hatch facing +y: a triangular prism standing on ``plane``.
+
+    The triangle lies in the tangential-axial plane (``base`` wide on the hatch, apex ``height``
+    above it) and is extruded ``depth`` along the radius, centred ``radius`` from the axis at
+    ``angle_deg`` in the x-z plane. Its two flanks slope about the radial direction, so their
+    normals have a tangential component: a range sensor looking down the port axis measures roll
+    about that axis from the points on them (a box seen end-on shows roll only at its edges).
+    """
+    a = np.radians(angle_deg)
+    u = np.array([np.cos(a), 0.0, np.sin(a)])  # radial
+    v = np.array([-np.sin(a), 0.0, np.cos(a)])  # tangential
+    y = np.array([0.0, 1.0, 0.0])
+    tri = [(-0.5 * base, 0.0), (0.5 * base, 0.0), (0.0, height)]
+    c = radius * u + plane * y
+    verts = [c + s * 0.5 * depth * u + tv * v + ty * y for s in (-1.0, 1.0) for tv, ty in tri]
+    return trimesh.convex.convex_hull(np.array(verts))
+
+
 def _assemble(
     name: str,
     parts: list[_Part],
@@ -472,10 +493,13 @@ def _iss_port() -> TargetModel:
         _Part(_box((1.6, 1.0, 1.0), (3.0, -8.0, 0)), 500.0, TRUSS),
         # Close-range features on the hatch (y = 5.4): three guide petals at 120 deg and an
         # off-centre centreline docking target standoff, so the last metres (where only the
-        # port fills the field of view) keep all six degrees of freedom observable.
+        # port fills the field of view) keep all six degrees of freedom observable. The petals
+        # are wedges whose sloping flanks face along the circumference, like a mechanism's roll
+        # guides: looking down the port axis, their points measure roll directly (0.25 m cubes
+        # did so only at their edges: roll 0.5 deg RMS at 2-4 m against a 0.07 deg bound).
         *[
-            _Part(_box((0.25, 0.25, 0.25), (0.75 * np.cos(a), 5.525, 0.75 * np.sin(a))), 30.0, ALUMINIUM)
-            for a in np.radians([90.0, 210.0, 330.0])
+            _Part(_petal(a, 0.75, 0.25, 0.25, 0.25, 5.4), 30.0, ALUMINIUM)
+            for a in (90.0, 210.0, 330.0)
         ],
         # (0.75 m off the axis: a chaser hull sphere of 0.5 m centred 0.6 m behind the docking
         # plane clears it by 8 cm at contact with the envelope's 0.10 m lateral offset; at 0.55 m

@@ -5,10 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.config import ICPConfig, PipelineConfig
+from perception.config import ICPConfig, PipelineConfig, load_config
 from perception.geometry import make_T
 from perception.modes import FrameVerdict, ModeLogic
+from perception.pipeline import TriDAR, approach_pose
+from perception.pointcloud import Subsystem
 from perception.state import Mode
+from perception.targets import load_target
 
 
 def _logic(**kw) -> ModeLogic:
@@ -35,11 +38,30 @@ def test_region_by_range_follows_fig9() -> None:
     assert m.region_for_range(3.0) == "port"
 
 
-def test_triangulation_settings_below_transition() -> None:
+def test_triangulation_settings_on_triangulation_data() -> None:
     tri = ICPConfig(max_iterations=12)
     m = _logic(icp_triangulation=tri)
-    assert m.icp_config_for_range(3.0) is m.cfg.icp_triangulation
-    assert m.icp_config_for_range(30.0) is m.cfg.icp
+    T, F = int(Subsystem.TRIANGULATION), int(Subsystem.TOF)
+    assert m.icp_config_for([T, T, F]) is m.cfg.icp_triangulation
+    assert m.icp_config_for([T, F, F]) is m.cfg.icp
+    assert m.icp_config_for([T, F]) is m.cfg.icp  # no majority
+    assert m.icp_config_for(np.zeros(0, dtype=np.int8)) is m.cfg.icp
+    plain = _logic()
+    assert plain.icp_config_for([T, T]) is plain.cfg.icp  # none configured
+
+
+def test_triangulation_settings_follow_the_scan_not_the_target_origin() -> None:
+    """At the ISS-like port the sensor ranges the hatch at 3 m by triangulation while the
+    target's origin is 12 m away, beyond the 7 m transition: the scan's points decide."""
+    cfg = load_config("final_approach", pipeline__icp_triangulation__max_iterations=12)
+    target = load_target("iss_port")
+    tri = TriDAR(cfg, target)
+    T = approach_pose(cfg, target, 3.0)
+    assert np.linalg.norm(T[:3, 3]) > tri.sensor.transition_range_m
+    pattern, _ = tri._tracking_pattern(T)
+    cloud = tri.sensor.scan(target, T, pattern, np.random.default_rng(0))
+    assert cloud.count(Subsystem.TRIANGULATION) > 0.9 * len(cloud)
+    assert tri.logic.icp_config_for(cloud.subsystem) is cfg.pipeline.icp_triangulation
 
 
 def test_loss_of_track_after_k_bad_frames() -> None:

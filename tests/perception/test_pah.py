@@ -681,35 +681,37 @@ def test_works_on_a_loaded_mesh_file(tmp_path: Path) -> None:
     assert _n_good(errors) >= 3, errors
 
 
-def test_polishing_the_leader_out_of_the_corridor_leaves_no_leader(monkeypatch) -> None:
+def test_polishing_the_leader_out_of_the_corridor_leaves_no_leader(monkeypatch, cubesat_db) -> None:
     """When the leader's full ICP ("polish") moves it out of the approach corridor and no other
     hypothesis is admissible, ``localize`` goes on with no leader (it used to crash on
-    ``None.free_space_beam`` and stop the episode: glideslope campaign run 29). The recorded
-    constrained search of that run (ISS-like port, 872 points) takes the polish path; from then
-    on the corridor is made to admit nothing."""
-    import json
-
+    ``None.free_space_beam`` and stop the episode: glideslope campaign run 29). The path is
+    forced: screened hypotheses are left unsettled and never explain the scan, so the leader is
+    polished, and from then on the corridor admits nothing."""
     import perception.pah as pah_module
-    from perception.config import load_config
 
-    data = np.load(Path(__file__).parent / "data" / "pah_polish_leaves_corridor.npz",
-                   allow_pickle=False)
-    rng = np.random.default_rng()
-    rng.bit_generator.state = json.loads(str(data["state"]))
-    constraint = PoseConstraint.from_corridor(load_config("final_approach").pipeline.corridor,
-                                              data["R_nominal"])
+    rng = np.random.default_rng(29)
+    T = random_pose(rng)
+    cloud = scan(load_target("cubesat"), T, rng)
+    constraint = PoseConstraint(T[:3, :3], np.radians(20.0), np.radians(15.0), 1.0, 100.0)
     polished = []
-    orig_polish, orig_best = PAHDatabase._polish, pah_module._best
+    orig_screen, orig_polish, orig_best = PAHDatabase._screen, PAHDatabase._polish, pah_module._best
 
-    def polish(self, scan, h, mc):
-        orig_polish(self, scan, h, mc)
+    def screen(self, *args, **kwargs):
+        hyps = orig_screen(self, *args, **kwargs)
+        for h in hyps:
+            h.settled = False
+        return hyps
+
+    def polish(self, scan_, h, mc):
+        orig_polish(self, scan_, h, mc)
         polished.append(h)
 
+    monkeypatch.setattr(PAHDatabase, "_screen", screen)
     monkeypatch.setattr(PAHDatabase, "_polish", polish)
+    monkeypatch.setattr(_Hypothesis, "clean", lambda self, accept, n: False)
     monkeypatch.setattr(pah_module, "_best", lambda hyps, c: None if polished else orig_best(hyps, c))
-    db = PAHDatabase.build(load_target("iss_port"))
-    res = db.localize(data["points"], rng, constraint=constraint, sigma=data["sigma"],
-                      max_time_s=math.inf)  # the pipeline passes no rays here
-    assert polished  # the recorded case does take the path
+    res = cubesat_db.localize(cloud.points, rng, constraint=constraint, sigma=cloud.sigma,
+                              max_time_s=math.inf)
+    assert len(polished) == 1  # the leader was polished, then nothing was admissible
     assert not res.converged and "no admissible candidate" in res.reason
     assert np.all(np.isfinite(res.T_sensor_target))

@@ -20,12 +20,12 @@ def test_one_percent_stray_returns_do_not_move_the_close_range_pose() -> None:
     rng = np.random.default_rng(1)
     T = approach_pose(cfg, target, 1.5)
     pattern, _ = tri._tracking_pattern(T)
-    icp_cfg = tri.logic.icp_config_for_range(1.5)
-    off = icp_cfg.model_copy(update={"gate_median_factor": 0.0})
     worst_with, worst_without, worst_gate_off = 0.0, 0.0, 0.0
     strays = 0
     for k in range(4):
         cloud = tri.sensor.scan(target, T, pattern, rng, frame_index=k)
+        icp_cfg = tri.logic.icp_config_for(cloud.subsystem)
+        off = icp_cfg.model_copy(update={"gate_median_factor": 0.0})
         s = cloud.spurious
         strays += int(s.sum())
         args = {"sigma": cloud.sigma, "directions": cloud.directions}

@@ -243,6 +243,39 @@ def test_corridor_validation_rejects_a_pose_outside_it() -> None:
     assert not any(sv.valid.position for _, sv in hist)
 
 
+def test_search_waits_for_a_pah_answer_that_explains_the_scan(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A PAH pose that fits within ICP's gate but that PAH itself did not validate (points seen
+    through the model) does not start a track: search goes on with the next scan, and the first
+    validated answer is taken (glideslope campaign run 29 tracked from a pose 11 deg off)."""
+    cfg = load_config("final_approach")
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(3))
+    fly = Fly(approach_pose(cfg, target, 22.0, lateral=(0.2, 0.1)))
+    answers = []
+    orig = pah_module.PAHDatabase.localize
+
+    def localize(self, *args, **kwargs):
+        res = orig(self, *args, **kwargs)
+        if len(answers) < 2:  # the first two answers: right pose, but flagged
+            res = dataclasses.replace(res, reason="3.3 % of the points lie behind the model surface")
+        answers.append(res)
+        return res
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "localize", localize)
+    hist = _run(tri, fly, 40)
+    assert len(answers) >= 3
+    assert all(r.converged and r.fitness > 0.95 for r in answers[:2])  # ICP's checks would pass
+    acquired = [e for e in tri.logic.events if e.target == Mode.TRACKING]
+    assert len(acquired) == 1 and tri.stats.acquisitions and len(tri.stats.acquisitions) == 1
+    # Tracking starts from the third answer's scan, not before.
+    first_valid = next(i for i, (_, sv) in enumerate(hist) if sv.valid.position)
+    assert first_valid > 0
+    t, sv = hist[-1]
+    assert sv.mode == Mode.TRACKING
+    assert pose_error(sv.T_sensor_target, fly.T(t))[0] < 0.05
+
+
 @pytest.mark.parametrize("start_flipped", [True, False])
 def test_ambiguity_monitor_leaves_the_flipped_twin(start_flipped: bool) -> None:
     """A track seeded on the half-turn twin of the CYGNSS-like bus (it fits the bus and wings,

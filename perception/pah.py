@@ -70,7 +70,7 @@ import math
 import time
 import zipfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -947,8 +947,7 @@ class PAHDatabase:
         if search_points is not None and search_points < n:
             # The O(n) stages of the search on a random subset (see search_points).
             sub = np.sort(rng.choice(n, size=max(int(search_points), min_pts), replace=False))
-            search = _Scan(P[sub], sig[sub], rng_norm[sub], rays[sub], scan.gate[sub],
-                           scan.margin[sub])
+            search = scan.subset(sub)
         max_extent = self.max_length_m + 2.0 * tol
         screen_cfg = ICPConfig(max_iterations=_SCREEN_ICP_ITERATIONS)
         # Polygon vertices come from points with scan neighbours: a stray return floats alone,
@@ -1535,6 +1534,10 @@ class _Scan:
         r = np.linalg.norm(P, axis=1) if ranges is None else ranges
         d = P / r[:, None] if rays is None else rays
         return cls(P, sigma, r, d, 3.0 * sigma + spacing, 3.0 * sigma + _FREE_SPACE_MARGIN_M)
+
+    def subset(self, idx: IntArray) -> _Scan:
+        """The points ``idx`` of this scan, with their gates and margins."""
+        return _Scan(*(getattr(self, f.name)[idx] for f in fields(self)))
 
 
 def _free_space_allowed(n_points: int) -> float:

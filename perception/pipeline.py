@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from perception.config import MissionConfig
+from perception.config import ICPConfig, MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import check_rigid, fast_matrix_to_quat, make_T
 from perception.modes import FrameVerdict, ModeLogic
@@ -463,8 +463,9 @@ class TriDAR:
         # within a few sigma of the answer: ICP starts in its fine phase.
         settled = (self.pc.fine_only_tracking and self._n_updates >= 3
                    and self.logic.bad_frames == 0 and self._gate_rejects == 0)
+        icp_cfg = self.logic.icp_config_for(cloud.subsystem)
         res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
-                  config=self.logic.icp_config_for(cloud.subsystem), coarse=not settled)
+                  config=icp_cfg, coarse=not settled)
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), self.pc.measurement_floor_m)
@@ -498,7 +499,7 @@ class TriDAR:
         if verdict.good and self.pc.symmetry_check_period_s is not None and self._n_updates > 0 \
                 and t_ref - self._sym_checked_t >= self.pc.symmetry_check_period_s - 1e-9:
             self._sym_checked_t = t_ref
-            self._check_symmetry(pts, cloud, res, t_ref)
+            self._check_symmetry(pts, cloud, res, t_ref, icp_cfg)
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
@@ -508,7 +509,7 @@ class TriDAR:
         self._outputs.append(out)
 
     def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
-                        t_ref: float) -> None:
+                        t_ref: float, icp_cfg: ICPConfig) -> None:
         """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
 
         ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model; a converged
@@ -528,8 +529,7 @@ class TriDAR:
         # Turns that show the sensor another side of the target explain little even before ICP:
         # only the near-fits are polished (with capped work: a turn that is not a better basin
         # need not converge) and scored again.
-        cfg = self.logic.icp_config_for(cloud.subsystem)
-        cfg = cfg.model_copy(update={"max_iterations": min(cfg.max_iterations, 10)})
+        cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
         alts: list[tuple[int, RegistrationResult]] = []
         for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):
             alt = icp(pts, self.model, T @ G[i], sigma=sigma, directions=dirs, config=cfg)

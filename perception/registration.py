@@ -37,7 +37,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from perception.config import ICPConfig
-from perception.geometry import check_rigid, kabsch, se3_log, skew
+from perception.geometry import check_rigid, fast_rotvec_to_matrix, kabsch, se3_log, skew
 from perception.numeric import median
 from perception.targets import TargetModel
 
@@ -203,6 +203,9 @@ class FaceGrid:
         starts: (V + 1,) int64 offsets into ``faces`` of each row's candidates.
         faces: candidate face indices, nearest to the voxel centre first.
         band: distance [m] from the surface up to which the candidates are exact.
+
+    The grid reaches one voxel past the band on every side, so its outer layer of voxels is
+    always empty; :meth:`nearest` clamps points outside the grid onto that layer.
     """
 
     planes: FloatArray
@@ -354,26 +357,21 @@ class FaceGrid:
             bound near a vertex), the face index (K,), and ``planes[face] @ [q, 1]`` (K, 4): the signed plane
             distance then the distances beyond the facet edges.
         """
-        ijk = np.floor((q - self.origin) * (1.0 / self.cell)).astype(np.intp)
-        nx, ny, nz = self.shape
-        inb = (
-            (ijk[:, 0] >= 0) & (ijk[:, 0] < nx) & (ijk[:, 1] >= 0) & (ijk[:, 1] < ny)
-            & (ijk[:, 2] >= 0) & (ijk[:, 2] < nz)
-        )
-        lin = (ijk[:, 0] * ny + ijk[:, 1]) * nz + ijk[:, 2]
-        row = np.where(inb, self.rows[np.where(inb, lin, 0)], -1)
+        # The outer layer of voxels is empty (build), so a point outside the grid is clamped
+        # onto it and found nowhere; truncation equals floor for the points inside.
+        ijk = ((q - self.origin) * (1.0 / self.cell)).astype(np.intp)
+        row = self.rows[np.ravel_multi_index(ijk.T, self.shape, mode="clip")]
         found = np.flatnonzero(row >= 0)
         row = row[found]
         lo = self.starts[row]
         cnt = self.starts[row + 1] - lo
         total = int(cnt.sum())
-        ends = np.cumsum(cnt)
+        beg = np.cumsum(cnt) - cnt  # first candidate of each point
         # Candidate slots: for point i, lo[i] .. lo[i] + cnt[i] - 1.
-        slot = np.arange(total) + np.repeat(lo - (ends - cnt), cnt)
-        owner = np.repeat(np.arange(found.size), cnt)
+        slot = np.arange(total) + np.repeat(lo - beg, cnt)
         face = self.faces[slot].astype(np.intp)
         pl = self.planes[face]
-        at = found[owner]
+        at = np.repeat(found, cnt)  # the point of each candidate
         x = q[at]
         v = np.einsum("kij,kj->ki", pl[:, :, :3], x) + pl[:, :, 3]
         # (a max over a 3-wide axis is several times slower than two elementwise maxima)
@@ -396,13 +394,19 @@ class FaceGrid:
             vmax = np.maximum(np.maximum(vin[:, 0], vin[:, 1]), vin[:, 2])
             hit = (nd < -1e-6) & (vmax <= 1e-9) & np.isfinite(d2)
             key = np.where(hit, lam * lam, np.inf)
-            kmin = np.minimum.reduceat(key, ends - cnt)
+            kmin = np.minimum.reduceat(key, beg)
             has = np.repeat(np.isfinite(kmin), cnt)
             d2 = np.where(has, key, d2)
         # First minimum of each point's run of candidates.
-        seg_min = np.minimum.reduceat(d2, ends - cnt) if total else d2
+        seg_min = np.minimum.reduceat(d2, beg) if total else d2
         at_min = np.flatnonzero(d2 <= np.repeat(seg_min, cnt))
-        pick = at_min[np.r_[True, owner[at_min[1:]] != owner[at_min[:-1]]]] if at_min.size else at_min
+        if at_min.size:
+            own = at[at_min]
+            first = np.empty(own.size, dtype=bool)
+            first[0] = True
+            np.not_equal(own[1:], own[:-1], out=first[1:])
+            at_min = at_min[first]
+        pick = at_min
         return found, np.sqrt(d2_euclid[pick]), face[pick], v[pick]
 
 
@@ -656,9 +660,9 @@ def covariance_from_information(
     """
     H = np.asarray(H, dtype=np.float64)
     L = max(float(length_scale_m), 1e-6)
-    S = np.diag([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
-    Hs = S @ (0.5 * (H + H.T)) @ S
-    if not np.all(np.isfinite(Hs)):
+    sc = np.array([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
+    Hs = (0.5 * (H + H.T)) * np.multiply.outer(sc, sc)
+    if not np.isfinite(Hs).all():
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     lam, V = np.linalg.eigh(Hs)
     lam_max = float(lam[-1])
@@ -666,7 +670,7 @@ def covariance_from_information(
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     weak = lam < degeneracy_ratio * lam_max
     inv = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, lam))
-    cov = S @ ((V * inv) @ V.T) @ S
+    cov = ((V * inv) @ V.T) * np.multiply.outer(sc, sc)
     names: set[str] = set()
     for k in np.flatnonzero(weak):
         names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
@@ -714,16 +718,6 @@ def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     return out
-
-
-def _rotation_exp(phi: FloatArray) -> FloatArray:
-    """Rodrigues: the rotation matrix of a rotation vector ``phi`` [rad]."""
-    th2 = float(phi @ phi)
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    if th2 < 1e-24:
-        return np.eye(3) + K
-    th = np.sqrt(th2)
-    return np.eye(3) + (np.sin(th) / th) * K + ((1.0 - np.cos(th)) / th2) * (K @ K)
 
 
 def _best_plane_match(
@@ -945,6 +939,8 @@ def icp(
     t = T[:3, 3].copy()
     step_sigma2 = np.inf
     prev_step_sigma = np.inf
+    prev_xi: FloatArray | None = None
+    reversals = 0
     stalled = False
     fine = not coarse
     prev_cost = np.inf
@@ -1004,7 +1000,7 @@ def icp(
             w = w * _kernel_weights(
                 m.dist / max(gate_floor, 1.5 * median(m.dist)), "cauchy", 1.0
             )
-        cost = float(np.sum(w * r * r) / np.sum(w * var))
+        cost = float(((w * r) @ r) / (w @ var))
         Hm = None
         if meth == "point_to_plane":
             # Linearised about the target origin, not the sensor origin: a finite rotation step
@@ -1030,32 +1026,41 @@ def icp(
                 gpp = np.concatenate([w @ e, w @ _cross(c, e)])
                 Hm = Hm + Hpp
                 g = g + gpp
-            damp = 1e-9 * float(np.max(np.diag(Hm))) + 1e-12
+            Hd = Hm.copy()
+            Hd.flat[::7] += 1e-9 * float(Hm.diagonal().max()) + 1e-12  # damping on the diagonal
             try:
-                xi_t = np.linalg.solve(Hm + damp * np.eye(6), g)
+                xi_t = np.linalg.solve(Hd, g)
             except np.linalg.LinAlgError:
                 xi_t = np.linalg.lstsq(Hm, g, rcond=None)[0]
             # Trust region: the correspondences hold within the gate (in the fine phase, which
             # starts once the steps are well inside it, its floor); a longer step, along a
             # direction these points barely constrain, would leave it.
             trust = gate_floor if fine else gate
-            reach = float(np.linalg.norm(xi_t[:3])) + mc.radius * float(np.linalg.norm(xi_t[3:]))
+            x0, x1, x2, x3, x4, x5 = xi_t.tolist()
+            reach = math.hypot(x0, x1, x2) + mc.radius * math.hypot(x3, x4, x5)
             if reach > trust:
                 xi_t = xi_t * (trust / reach)
             if fine:
                 # The step against the frame's own uncertainty (Mahalanobis length squared).
                 step_sigma2 = float(xi_t @ Hm @ xi_t)
                 # A sub-sigma step that no longer lowers the cost is a limit cycle (points near an
-                # edge trading faces): stop half-way between the two poses it alternates between.
-                stalled = step_sigma2 < 1.0 and cost >= prev_cost
+                # edge trading faces), and so is a run of steps each undoing the one before (to
+                # within a third of its length) for two steps running: the matches flip between
+                # two sets, each pulling back to the other pose. Stop half-way.
+                undo = prev_xi is not None and step_sigma2 > 0.0 and float(
+                    (xi_t + prev_xi) @ Hm @ (xi_t + prev_xi)) < step_sigma2 / 9.0
+                reversals = reversals + 1 if undo else 0
+                stalled = (step_sigma2 < 1.0 and cost >= prev_cost) or reversals >= 2
+                prev_xi = xi_t
                 if stalled:
                     xi_t = 0.5 * xi_t
             # In the target frame the model point x moves to x + rho + phi x x; in the sensor
             # frame that is t += R rho, R <- R exp(phi) (= exp(R phi) R about the target origin).
             t = t + R @ xi_t[:3]
-            R = R @ _rotation_exp(xi_t[3:])
-            step_t = float(np.linalg.norm(xi_t[:3]))
-            step_r = float(np.linalg.norm(xi_t[3:]))
+            R = R @ fast_rotvec_to_matrix(xi_t[3:])
+            x0, x1, x2, x3, x4, x5 = xi_t.tolist()
+            step_t = math.hypot(x0, x1, x2)
+            step_r = math.hypot(x3, x4, x5)
         else:
             # Closed-form step on point pairs, weighted by the same noise model (the kernel acts on
             # the point-to-point distance).
@@ -1172,7 +1177,8 @@ def _finish(
         foot_s, m.normal @ R.T, sig[m.sel], D[m.sel], c, cfg.noise_floor_fraction,
         _model_sigma(mc, cfg),
     )
-    patch = max(float(np.sqrt(np.mean(np.sum((foot_s - c) ** 2, axis=1)))), 0.05)
+    dc = (foot_s - c).ravel()
+    patch = max(math.sqrt(float(dc @ dc) / n_in), 0.05)
     cov_c, degenerate = covariance_from_information(H, patch, cfg.degeneracy_ratio)
     J = np.eye(6)
     J[:3, 3:] = -skew(t - c)  # origin shift of a rotation about c: rho_o = rho_c + phi x (t - c)
@@ -1181,7 +1187,7 @@ def _finish(
     return RegistrationResult(
         T_sensor_target=T,
         fitness=n_in / n,
-        inlier_rmse=float(np.sqrt(np.mean(m.r * m.r))),
+        inlier_rmse=math.sqrt(float(m.r @ m.r) / n_in),
         converged=converged,
         iterations=iterations,
         covariance=cov,

@@ -91,8 +91,12 @@ class RegionOfInterest:
 
     def corners(self) -> FloatArray:
         """(8, 3) corners of the box [m], target frame."""
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        return np.asarray(self.center) + signs * np.asarray(self.half_extents)
+        return np.asarray(self.center) + _BOX_SIGNS * np.asarray(self.half_extents)
+
+
+#: Corner signs of a box, in the order of :meth:`RegionOfInterest.corners`.
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+_BOX_SIGNS.setflags(write=False)
 
 
 def port_frame(position: npt.ArrayLike, axis: npt.ArrayLike) -> FloatArray:

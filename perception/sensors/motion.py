@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation, Slerp
 
-from perception.geometry import check_rigid
+from perception.geometry import check_rigid, skew
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -74,7 +74,22 @@ class RelativeMotion:
         R0 = self.T_sensor_target_start[:3, :3]
         p0 = self.T_sensor_target_start[:3, 3]
         out = np.zeros((t.size, 4, 4))
-        out[:, :3, :3] = Rotation.from_rotvec(dt[:, None] * self.omega_sensor).as_matrix() @ R0
+        # A constant rate turns about one fixed axis u by theta = |omega| dt, so by Rodrigues
+        # R(dt) R0 = R0 + sin(theta) K R0 + 2 sin^2(theta / 2) K^2 R0 (K = [u]x): two products
+        # computed once, then per-sample scalars.
+        w = float(np.linalg.norm(self.omega_sensor))
+        if w > 0.0:
+            K = skew(self.omega_sensor / w)
+            KR = K @ R0
+            basis = np.stack([R0, KR, K @ KR]).reshape(3, 9)
+            th = w * dt
+            coef = np.empty((t.size, 3))
+            coef[:, 0] = 1.0
+            coef[:, 1] = np.sin(th)
+            coef[:, 2] = 2.0 * np.sin(0.5 * th) ** 2
+            out[:, :3, :3] = (coef @ basis).reshape(-1, 3, 3)
+        else:
+            out[:, :3, :3] = R0
         out[:, :3, 3] = p0 + dt[:, None] * self.v_sensor
         out[:, 3, 3] = 1.0
         return out

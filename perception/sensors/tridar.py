@@ -238,10 +238,11 @@ class TriDARSensor:
             az_r, el_r = pattern.az, pattern.el
         reported = angles_to_directions(az_r, el_r)
 
-        # 3. Footprint sub-rays (N, S, 3), sensor frame.
+        # 3. Footprint sub-rays (S, N, 3), sensor frame: sub-ray major, so the footprint
+        # statistics below reduce over contiguous rows rather than along a short inner axis.
         off = self._subray_offsets
         s = off.shape[0]
-        dirs_s = angles_to_directions(az_a[:, None] + off[:, 0], el_a[:, None] + off[:, 1])
+        dirs_s = angles_to_directions(az_a + off[:, 0, None], el_a + off[:, 1, None])
         flat_s = dirs_s.reshape(-1, 3)
 
         # 2. Rays into the target frame, each with its sample's pose.
@@ -256,8 +257,8 @@ class TriDARSensor:
             R, p = Ts[:, :3, :3], Ts[:, :3, 3]
             # R^T x per sample as row-vector products (batched matmul is ~6x einsum's speed here).
             o_n = -np.matmul(p[:, None, :], R)[:, 0]
-            origins = np.repeat(o_n, s, axis=0)
-            dirs_t = np.matmul(dirs_s, R).reshape(-1, 3)
+            origins = np.broadcast_to(o_n, (s, n, 3)).reshape(-1, 3)
+            dirs_t = np.matmul(dirs_s.transpose(1, 0, 2), R).transpose(1, 0, 2).reshape(-1, 3)
             face, r_k, cos_k = cast_rays(target, origins, dirs_t)
 
         # Material response of each sub-ray.
@@ -287,25 +288,25 @@ class TriDARSensor:
                 w[from_occluder] = np.where(ok_o, OCCLUDER_REFLECTIVITY * cos_o, 0.0)
                 returns = returns.copy()
                 returns[from_occluder] = ok_o
-        r_k = np.where(returns, r_k, 0.0).reshape(n, s)
-        returns = returns.reshape(n, s)
-        w = w.reshape(n, s)
-        any_ret = returns.any(axis=1)
+        r_k = np.where(returns, r_k, 0.0).reshape(s, n)
+        returns = returns.reshape(s, n)
+        w = w.reshape(s, n)
+        any_ret = returns.any(axis=0)
 
         # Footprint statistics: signal, mean range, first echo, spread.
-        w_sum = w.sum(axis=1)
+        w_sum = w.sum(axis=0)
         signal = w_sum / s
         safe_w = np.where(w_sum > 0, w_sum, 1.0)
-        r_mean = (w * r_k).sum(axis=1) / safe_w
-        r_min = np.where(returns, r_k, np.inf).min(axis=1)
+        r_mean = (w * r_k).sum(axis=0) / safe_w
+        r_min = np.where(returns, r_k, np.inf).min(axis=0)
         tol = cfg.beam.mixed_range_tolerance_m
-        first = returns & (r_k <= r_min[:, None] + tol)
+        first = returns & (r_k <= r_min + tol)
         w_first = np.where(first, w, 0.0)
-        wf_sum = w_first.sum(axis=1)
+        wf_sum = w_first.sum(axis=0)
         signal_first = wf_sum / s
-        r_first = (w_first * r_k).sum(axis=1) / np.where(wf_sum > 0, wf_sum, 1.0)
+        r_first = (w_first * r_k).sum(axis=0) / np.where(wf_sum > 0, wf_sum, 1.0)
         occ_share = (
-            np.where(from_occluder.reshape(n, s), w, 0.0).sum(axis=1) / safe_w
+            np.where(from_occluder.reshape(s, n), w, 0.0).sum(axis=0) / safe_w
             if occl is not None
             else np.zeros(n)
         )
@@ -361,7 +362,7 @@ class TriDARSensor:
         if idx.size == 0:
             return PointCloud.empty(t_start, t_end)
 
-        centre_dirs = dirs_s[idx, 0]
+        centre_dirs = dirs_s[0, idx]
         true_pts = centre_dirs * r_true[idx, None]
         true_pts[glint[idx]] = np.nan  # stray light has no surface point
         return PointCloud(

@@ -338,6 +338,29 @@ def test_face_grid_matches_trimesh_closest_point():
     assert f.size == len(pts) and np.all(dd < 1e-12)
 
 
+@pytest.mark.parametrize("name", ["cubesat", "cygnss", "iss_port"])
+def test_face_grid_outside_points_are_not_found(name: str) -> None:
+    """Lookups clamp onto the grid's outer voxel layer, which the build leaves empty: points
+    beyond the grid on any side (or far away) match nothing, and every point kept lies inside."""
+    grid = prepare_model(load_target(name)).grid
+    assert grid is not None
+    rows = grid.rows.reshape(grid.shape)
+    for layer in (rows[0], rows[-1], rows[:, 0], rows[:, -1], rows[:, :, 0], rows[:, :, -1]):
+        assert np.all(layer == -1)
+    rng = np.random.default_rng(3)
+    extent = np.asarray(grid.shape) * grid.cell
+    # Points spread over three times the grid's box: most lie outside it on some axis.
+    q = grid.origin - extent + rng.uniform(0.0, 3.0, (20000, 3)) * extent
+    found, d, _, _ = grid.nearest(q)
+    idx = np.floor((q - grid.origin) / grid.cell)
+    inside = np.all((idx >= 1) & (idx < np.asarray(grid.shape) - 1), axis=1)
+    assert np.all(inside[found]) and found.size > 0
+    assert np.all(d <= grid.band + np.sqrt(3.0) * grid.cell)
+    # Just outside the low corner: truncation toward zero would put these in voxel 0.
+    f0, _, _, _ = grid.nearest(grid.origin - 0.5 * grid.cell * np.ones((4, 3)))
+    assert f0.size == 0
+
+
 def test_partition_median_equals_numpy_median_bit_for_bit() -> None:
     """The hot path's median must not change a single result (it only drops per-call overhead)."""
     from perception.numeric import median as _median

@@ -258,6 +258,22 @@ def test_motion_distortion_of_a_spinning_target() -> None:
     np.testing.assert_allclose(via_fn.points, moving.points, atol=1e-9)
 
 
+@pytest.mark.parametrize("omega", [[0.3, -1.2, 0.7], [0.0, 0.0, 0.0], [1e-9, 0.0, -2e-9], [0.0, 40.0, 0.0]])
+def test_relative_motion_poses_are_the_rotation_vector_exponential(omega: list[float]) -> None:
+    """The closed-form constant-rate poses equal scipy's ``exp(omega dt) R0`` for small, zero,
+    tiny and several-turn angles, before and after the reference time."""
+    R0 = Rotation.from_euler("zyx", [20.0, -35.0, 60.0], degrees=True).as_matrix()
+    T0 = make_T(R0, np.array([0.4, -0.2, 12.0]))
+    v = np.array([0.01, 0.02, -0.05])
+    motion = RelativeMotion(T0, v, np.array(omega), t_ref=2.0)
+    t = np.linspace(1.5, 2.5, 401)
+    T = motion.poses(t)
+    ref = Rotation.from_rotvec((t - 2.0)[:, None] * np.array(omega)).as_matrix() @ R0
+    np.testing.assert_allclose(T[:, :3, :3], ref, atol=1e-14)
+    np.testing.assert_allclose(T[:, :3, 3], T0[:3, 3] + (t - 2.0)[:, None] * v, atol=1e-15)
+    assert np.array_equal(T[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (t.size, 1)))
+
+
 def test_same_seed_identical_cloud() -> None:
     target = load_target("cygnss")
     cfg = SensorConfig(faults=FaultsConfig(dropout_prob=0.1, spurious_prob=0.05))

@@ -329,6 +329,7 @@ class FaceGrid:
         rays: FloatArray | None = None,
         back_cos: float = 1.0,
         along_rays: bool = True,
+        max_cross: FloatArray | None = None,
     ) -> tuple[npt.NDArray[np.intp], FloatArray, npt.NDArray[np.intp], FloatArray]:
         """Model face of each point within ``band`` of the surface: the face its ray crosses
         nearest to it, else the closest face.
@@ -350,6 +351,11 @@ class FaceGrid:
             back_cos: threshold of the back-facing test.
             along_rays: choose by the ray crossing when ``rays`` are given (False: always the
                 closest face).
+            max_cross: (N,) farthest crossing [m] along each point's ray that can be its face
+                (a few range-noise sigmas); a crossing farther off is not the surface the point
+                came from (at close range a ray can cross a facet 0.3 m behind or in front of a
+                point that lies 2 mm from a face seen edge-on), and the closest face is used.
+                None: no limit.
 
         Returns:
             ``(found, dist, face, plane)``: indices (K,) of the points that lie in the band, their
@@ -393,6 +399,8 @@ class FaceGrid:
                 vin = v[:, 1:] + lam[:, None] * md
             vmax = np.maximum(np.maximum(vin[:, 0], vin[:, 1]), vin[:, 2])
             hit = (nd < -1e-6) & (vmax <= 1e-9) & np.isfinite(d2)
+            if max_cross is not None:
+                hit &= np.abs(lam) <= max_cross[at]
             key = np.where(hit, lam * lam, np.inf)
             kmin = np.minimum.reduceat(key, beg)
             has = np.repeat(np.isfinite(kmin), cnt)
@@ -780,6 +788,7 @@ def _correspond(
     back_cos: float,
     samples: bool = False,
     along_rays: bool = False,
+    max_cross: FloatArray | None = None,
 ) -> _Matches:
     """Matches of the points ``q`` (N, 3, target frame) within ``gate`` [m] of the model.
 
@@ -792,7 +801,7 @@ def _correspond(
     g = mc.grid
     if g is None or samples:
         return _samples_match(mc, q, np.arange(q.shape[0]), gate, k)
-    found, dist, face, v = g.nearest(q, rays, back_cos, along_rays)
+    found, dist, face, v = g.nearest(q, rays, back_cos, along_rays, max_cross)
     ok = dist <= gate
     sel = found[ok]
     pl = g.planes[face[ok]]
@@ -859,7 +868,8 @@ def icp(
             default ``config.method``.
         config: tuning; defaults of :class:`~perception.config.ICPConfig` when None.
         match_along_rays: choose each point's face along its measured ray (needs
-            ``directions``); None: ``config.match_along_rays``.
+            ``directions``), among crossings within ``max(4 sigma_i, min_correspondence_m)`` of
+            the point (else its closest face); None: ``config.match_along_rays``.
         directions: (N, 3) unit ray directions [sensor frame] along which each point's range
             noise acts. Default: ``points / |points|`` (rays from the sensor origin). Given
             explicitly, and with ``match_along_rays``, they are taken as the measured rays and
@@ -935,6 +945,12 @@ def icp(
     along_rays = directions is not None and (
         cfg.match_along_rays if match_along_rays is None else bool(match_along_rays)
     )
+    # A ray crossing a face farther from the point than its noise and the pose error still being
+    # corrected allow is not where the point came from. The pose error is gauged by three times
+    # the median match distance of the previous iteration (none on the first: no limit); the
+    # coarse phase, still far from the answer, is not limited.
+    cross_base = np.maximum(4.0 * sig, cfg.min_correspondence_m) if along_rays else None
+    match_scale = np.inf
     R = T[:3, :3].copy()
     t = T[:3, 3].copy()
     step_sigma2 = np.inf
@@ -952,20 +968,24 @@ def icp(
         # Everything per point is in the target frame; only the 6-vector step is rotated.
         q = (P - t) @ R
         d_all = D @ R
+        cross_max = (np.maximum(cross_base, 3.0 * match_scale)
+                     if cross_base is not None and fine else None)
         m = _correspond(
             mc, q, gate, n_candidates if fine else 1, d_all, back_cos, meth == "point_to_point",
-            along_rays,
+            along_rays, cross_max,
         )
         m_raw = m
         # One mask over the matches (median gate, then trim, then front faces), applied once.
         dist = m.dist
+        if dist.size:
+            match_scale = median(dist)
         kept = None  # None: all
         n_kept = int(m.sel.size)
         if gate_k > 0.0 and n_kept > min_pts:
             # Adaptive gate on the median match distance: once the pose is close, a stray
             # return 0.1-1 m off every surface is no longer a correspondence (trimming alone
             # keeps it while fewer than trim_fraction of the points are strays).
-            thr = max(median_floor, gate_k * median(dist))
+            thr = max(median_floor, gate_k * match_scale)
             if thr < gate:
                 near = dist <= thr
                 n_near = int(np.count_nonzero(near))
@@ -1082,7 +1102,7 @@ def icp(
                 prev_cost = np.inf
                 # The fine gate from these matches (the step that follows them is a fraction of
                 # the gate floor), so the first fine iteration already works at its own scale.
-                gate = max(gate_floor, min(gate, 3.0 * median(m_raw.dist)))
+                gate = max(gate_floor, min(gate, 3.0 * match_scale))
             continue
         new_gate = max(gate_floor, min(gate, 3.0 * median(m.dist)))
         gate_settled = new_gate >= 0.98 * gate
@@ -1115,7 +1135,9 @@ def icp(
         reason = f"not converged after {cfg.max_iterations} iterations"
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    return _finish(P, sig, D, mc, T, gate, cfg, converged, reason, it, t_start, along_rays, reuse)
+    cross_max = None if cross_base is None else np.maximum(cross_base, 3.0 * match_scale)
+    return _finish(P, sig, D, mc, T, gate, cfg, converged, reason, it, t_start, along_rays, reuse,
+                   cross_max)
 
 
 def _model_sigma(mc: ModelCloud, cfg: ICPConfig) -> float:
@@ -1138,11 +1160,13 @@ def _finish(
     t_start: float,
     along_rays: bool = False,
     reuse: _Matches | None = None,
+    max_cross: FloatArray | None = None,
 ) -> RegistrationResult:
     """Final correspondences, fitness and the Cramer-Rao covariance at the returned pose.
 
     ``reuse``: the matches of the last iteration, whose step was below tolerance; their faces
-    are kept (within ``gate``) and only the plane residuals are evaluated at ``T``.
+    are kept (within ``gate``) and only the plane residuals are evaluated at ``T``. ``max_cross``:
+    as in :meth:`FaceGrid.nearest`.
     """
     n = P.shape[0]
     R = T[:3, :3]
@@ -1150,7 +1174,7 @@ def _finish(
     d_all = D @ R
     if reuse is None:
         m = _correspond(mc, (P - t) @ R, gate, int(cfg.plane_candidates), d_all,
-                        cfg.back_facing_cos, along_rays=along_rays)
+                        cfg.back_facing_cos, along_rays=along_rays, max_cross=max_cross)
     else:
         m = reuse.keep(reuse.dist <= gate)
         m.r = np.einsum("ij,ij->i", m.normal, (P[m.sel] - t) @ R - m.foot)

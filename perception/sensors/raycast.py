@@ -50,33 +50,28 @@ def cast_rays(
     """
     d = np.asarray(directions_target, dtype=np.float64).reshape(-1, 3)
     o = np.asarray(origins_target, dtype=np.float64)
-    m = d.shape[0]
-    face = np.full(m, -1, dtype=np.int64)
-    rng = np.full(m, np.nan)
-    cos_inc = np.full(m, np.nan)
-    if m == 0:
-        return face, rng, cos_inc
+    if d.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
     single = o.ndim == 1
     o_rays = np.broadcast_to(o, d.shape) if single else o.reshape(-1, 3)
     first = np.asarray(target.ray.intersects_first(o_rays, d), dtype=np.int64)
-    idx = np.flatnonzero(first >= 0)
-    if idx.size == 0:
-        return face, rng, cos_inc
     normals, offsets = face_planes(target)
-    f = first[idx]
+    # Dense over all rays (most rays of a steered scan hit): fewer calls than gathering the hits
+    # and scattering them back; misses read face 0 and are masked at the end.
+    hit = first >= 0
+    f = np.where(hit, first, 0)
     n = normals[f]
-    denom = np.einsum("ij,ij->i", n, d[idx])
+    denom = np.einsum("ij,ij->i", n, d)
     if single:
-        num = offsets[f] - normals[f] @ o
+        num = offsets[f] - n @ o
     else:
-        num = offsets[f] - np.einsum("ij,ij->i", n, o_rays[idx])
-    ok = np.abs(denom) > 1e-12
-    t = np.divide(num, denom, out=np.full(idx.size, np.nan), where=ok)
-    ok &= t > 0
-    idx, f, t, denom = idx[ok], f[ok], t[ok], denom[ok]
-    face[idx] = f
-    rng[idx] = t
-    cos_inc[idx] = -denom
+        num = offsets[f] - np.einsum("ij,ij->i", n, o_rays)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / denom
+    ok = hit & (np.abs(denom) > 1e-12) & (t > 0)
+    face = np.where(ok, first, -1)
+    rng = np.where(ok, t, np.nan)
+    cos_inc = np.where(ok, -denom, np.nan)
     return face, rng, cos_inc
 
 

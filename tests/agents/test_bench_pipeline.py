@@ -16,7 +16,10 @@ def test_port_errors_are_reported_and_smaller_than_centre_of_mass_errors() -> No
     cfg = load_config("final_approach")
     target = load_target("iss_port")
     T = approach_pose(cfg, target, 4.0)
-    sc = Scenario("hold", cfg, target, 8.0, lambda t: T, None)
+    # 12 s: acquisition off this hatch can take several scans (seed 0: 5 s of search, PAH's first
+    # four answers 7-14 deg off and rejected for points seen through the model), and the
+    # comparison needs a few tens of tracking frames.
+    sc = Scenario("hold", cfg, target, 12.0, lambda t: T, None)
     result = replay(sc, seed=0)
     row, bins = summarise(result)
     assert row["acquisitions"] == 1
@@ -27,9 +30,10 @@ def test_port_errors_are_reported_and_smaller_than_centre_of_mass_errors() -> No
     ok = rec["valid"]
     # Recomputed from the published poses: the port under the estimate vs under the truth.
     assert np.all(np.isfinite(rec["port_err"][ok])) and np.all(np.isnan(rec["port_err"][~ok]))
-    # Measured over seeds 0-2: port 3.0-10.8 mm RMS, centre of mass 9-21 mm RMS (attitude
-    # 0.04-0.65 deg RMS over 32 frames, so the ratio moves with the seed). With the petals as
-    # cubes and closest-face matching: port 16-20 mm, centre of mass 34-52 mm.
+    # Measured over seeds 0-2: port 2.6-3.3 mm RMS (max 9 mm), centre of mass 8.7-9.9 mm RMS,
+    # attitude 0.04-0.05 deg RMS over 28-52 frames. An 8 s hold before ray crossings were
+    # bounded by the noise: port 3.0-10.8 mm, centre of mass 9-21 mm, attitude up to 0.65 deg.
+    # With the petals as cubes and closest-face matching: port 16-20 mm, centre of mass 34-52 mm.
     assert b["port_rms_mm"] < 0.7 * b["pos_rms_mm"]
     assert b["port_rms_mm"] < 15.0 and b["port_max_mm"] < 50.0
 

@@ -12,6 +12,7 @@ from perception.config import ICPConfig
 from perception.geometry import invert, make_T, pose_error, transform_points, transform_vectors
 from perception.registration import (
     FAILURE_VARIANCE,
+    FaceGrid,
     ModelCloud,
     RegistrationResult,
     covariance_about_sensor_origin,
@@ -336,6 +337,25 @@ def test_face_grid_matches_trimesh_closest_point():
     # Samples lie on their own faces: every one is found at zero distance.
     f, dd, _, _ = grid.nearest(np.asarray(pts))
     assert f.size == len(pts) and np.all(dd < 1e-12)
+
+
+def test_face_grid_ray_crossings_farther_than_max_cross_fall_back_to_the_closest_face() -> None:
+    """A point 1 mm inside a box's +x face whose ray runs along -y crosses the +y face 20 mm
+    behind it: by the ray that is its face (a 20 mm residual), unless crossings are bounded
+    (10 mm here), when the closest face (+x, 1 mm) is. A crossing within the bound still wins
+    over a closer face."""
+    grid = FaceGrid.build(trimesh.creation.box((1.0, 1.0, 1.0)))
+    q = np.array([[0.499, 0.48, 0.3], [0.499, 0.495, 0.3]])
+    rays = np.array([[0.0, -1.0, 0.0], [0.0, -1.0, 0.0]])
+    found, d, face, v = grid.nearest(q, rays, 0.3, True)
+    assert found.tolist() == [0, 1]
+    np.testing.assert_allclose(grid.planes[face, 0, :3], [[0, 1, 0], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(v[:, 0], [-0.02, -0.005], atol=1e-12)
+    found, d, face, v = grid.nearest(q, rays, 0.3, True, np.array([0.01, 0.01]))
+    assert found.tolist() == [0, 1]
+    np.testing.assert_allclose(grid.planes[face, 0, :3], [[1, 0, 0], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(v[:, 0], [-0.001, -0.005], atol=1e-12)
+    np.testing.assert_allclose(d, [0.001, 0.005], atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["cubesat", "cygnss", "iss_port"])

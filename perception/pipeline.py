@@ -217,6 +217,12 @@ class TriDAR:
             self._pah = self.target.cached(key, lambda: PAHDatabase.build(self.target, self.pc.pah))
         return self._pah
 
+    def prepare(self) -> None:
+        """Build what search needs now rather than in the first search frame: the PAH database and
+        the target's near-symmetries (about 1 s for the ISS-like port; once per process and target,
+        cached on the target)."""
+        self.pah.near_symmetries()
+
     # ------------------------------------------------------------------ the frame
     def step(self, scene: TruthScene | PointCloud, t: float, ego: EgoMotion | None = None) -> StateVector:
         """Run one frame at time ``t`` [s] and publish the newest available state.

@@ -176,6 +176,8 @@ class TriDARObserver:
 
     def reset(self, rng: np.random.Generator) -> None:
         self.pipeline.reset(rng)  # start-up state; the prepared model and PAH database are kept
+        # The first reset of a process builds the search's database, so no step stalls for it.
+        self.pipeline.prepare()
 
     def observe(self, world: World, rng: np.random.Generator) -> StateVector:
         del rng  # the pipeline owns the generator handed to reset()

@@ -291,3 +291,29 @@ def test_closed_loop_on_the_full_pipeline_is_finite_and_deterministic(env_id: st
         runs.append(np.array(out))
     np.testing.assert_array_equal(runs[0], runs[1])
     assert "tracking" in modes
+
+
+def test_reset_builds_the_search_database_so_the_first_step_does_not(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the full pipeline, reset() builds what search needs (PAH database, near-symmetries):
+    the first step of an episode searches without building anything (it used to stall ~1 s)."""
+    import perception.pah as pah
+
+    env = gym.make("TriDAR/FinalApproach-v0")
+    env.unwrapped.target.cache.clear()  # as in a fresh process
+    env.reset(seed=3)
+    keys = set(env.unwrapped.target.cache)
+    assert any(isinstance(k, tuple) and k and k[0] == "pah_db" for k in keys)
+    sym = env.unwrapped.observer.pipeline.pah.near_symmetries()
+    built: list[str] = []
+    orig_build = pah.PAHDatabase.build
+
+    def spy(*args, **kwargs):
+        built.append("database")
+        return orig_build(*args, **kwargs)
+
+    monkeypatch.setattr(pah.PAHDatabase, "build", spy)
+    _, _, _, _, info = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    assert built == [] and info["mode"] in ("search", "tracking")
+    assert env.unwrapped.observer.pipeline.pah.near_symmetries() is sym  # the cached array

@@ -868,8 +868,9 @@ def icp(
             default ``config.method``.
         config: tuning; defaults of :class:`~perception.config.ICPConfig` when None.
         match_along_rays: choose each point's face along its measured ray (needs
-            ``directions``), among crossings within ``max(4 sigma_i, min_correspondence_m)`` of
-            the point (else its closest face); None: ``config.match_along_rays``.
+            ``directions``); in the fine phase only crossings within ``max(4 sigma_i,
+            min_correspondence_m, 3 x`` the median match distance) of the point count (else its
+            closest face). None: ``config.match_along_rays``.
         directions: (N, 3) unit ray directions [sensor frame] along which each point's range
             noise acts. Default: ``points / |points|`` (rays from the sensor origin). Given
             explicitly, and with ``match_along_rays``, they are taken as the measured rays and

@@ -18,6 +18,7 @@ FloatArray = npt.NDArray[np.float64]
 __all__ = [
     "make_T",
     "compose",
+    "cross_rows",
     "fast_rotvec_to_matrix",
     "invert",
     "transform_points",
@@ -302,6 +303,16 @@ def pose_error(T_est: npt.ArrayLike, T_true: npt.ArrayLike) -> tuple[float, floa
 # in plain floats for exactly one item and agree with the general functions to round-off (tests
 # compare them on random inputs).
 # --------------------------------------------------------------------------------------------
+
+
+def cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise ``a x b`` of (K, 3) arrays (``np.cross`` costs several times more at this size;
+    pass ``np.broadcast_to(v, b.shape)`` for one vector against many)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def fast_cross(a: FloatArray, b: FloatArray) -> FloatArray:

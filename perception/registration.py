@@ -37,7 +37,14 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from perception.config import ICPConfig
-from perception.geometry import check_rigid, fast_rotvec_to_matrix, kabsch, se3_log, skew
+from perception.geometry import (
+    check_rigid,
+    cross_rows,
+    fast_rotvec_to_matrix,
+    kabsch,
+    se3_log,
+    skew,
+)
 from perception.numeric import median
 from perception.targets import TargetModel
 
@@ -590,7 +597,7 @@ def _jacobian_rows(s_rel: FloatArray, n_sensor: FloatArray) -> FloatArray:
     """Rows ``A_i = [n_i, s_i x n_i]`` with ``r_i(xi) ~= r_i - A_i xi``, ``s_i`` about the pivot."""
     A = np.empty((n_sensor.shape[0], 6))
     A[:, :3] = n_sensor
-    A[:, 3:] = _cross(s_rel, n_sensor)
+    A[:, 3:] = cross_rows(s_rel, n_sensor)
     return A
 
 
@@ -669,7 +676,8 @@ def covariance_from_information(
     H = np.asarray(H, dtype=np.float64)
     L = max(float(length_scale_m), 1e-6)
     sc = np.array([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
-    Hs = (0.5 * (H + H.T)) * np.multiply.outer(sc, sc)
+    scale = np.multiply.outer(sc, sc)
+    Hs = (0.5 * (H + H.T)) * scale
     if not np.isfinite(Hs).all():
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     lam, V = np.linalg.eigh(Hs)
@@ -678,7 +686,7 @@ def covariance_from_information(
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     weak = lam < degeneracy_ratio * lam_max
     inv = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, lam))
-    cov = ((V * inv) @ V.T) * np.multiply.outer(sc, sc)
+    cov = ((V * inv) @ V.T) * scale
     names: set[str] = set()
     for k in np.flatnonzero(weak):
         names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
@@ -717,15 +725,6 @@ def _kernel_weights(z: FloatArray, kind: str, k: float) -> FloatArray:
     if kind == "cauchy":
         return 1.0 / (1.0 + (a / k) ** 2)
     return np.ones_like(a)
-
-
-def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise ``a x b`` of (K, 3) arrays (``np.cross`` costs several times more at this size)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def _best_plane_match(
@@ -1044,7 +1043,7 @@ def icp(
                 Hpp[3:, :3] = skew(Sc)
                 cc = cw.T @ c
                 Hpp[3:, 3:] = np.trace(cc) * np.eye(3) - cc
-                gpp = np.concatenate([w @ e, w @ _cross(c, e)])
+                gpp = np.concatenate([w @ e, w @ cross_rows(c, e)])
                 Hm = Hm + Hpp
                 g = g + gpp
             Hd = Hm.copy()
@@ -1068,8 +1067,9 @@ def icp(
                 # edge trading faces), and so is a run of steps each undoing the one before (to
                 # within a third of its length) for two steps running: the matches flip between
                 # two sets, each pulling back to the other pose. Stop half-way.
-                undo = prev_xi is not None and step_sigma2 > 0.0 and float(
-                    (xi_t + prev_xi) @ Hm @ (xi_t + prev_xi)) < step_sigma2 / 9.0
+                back = None if prev_xi is None else xi_t + prev_xi
+                undo = back is not None and step_sigma2 > 0.0 and float(
+                    back @ Hm @ back) < step_sigma2 / 9.0
                 reversals = reversals + 1 if undo else 0
                 stalled = (step_sigma2 < 1.0 and cost >= prev_cost) or reversals >= 2
                 prev_xi = xi_t

@@ -95,7 +95,9 @@ class RegionOfInterest:
 
 
 #: Corner signs of a box, in the order of :meth:`RegionOfInterest.corners`.
-_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+_BOX_SIGNS = np.array(
+    [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64
+)
 _BOX_SIGNS.setflags(write=False)
 
 

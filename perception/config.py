@@ -41,6 +41,7 @@ __all__ = [
     "FaultsConfig",
     "FlashLidarConfig",
     "ICPConfig",
+    "IntegrityConfig",
     "InitialStateConfig",
     "MaterialResponseConfig",
     "MissionConfig",
@@ -325,6 +326,21 @@ class CorridorConfig(StrictModel):
     max_range_m: PositiveFloat = 1000.0
 
 
+class IntegrityConfig(StrictModel):
+    """What a published pose promises (:mod:`perception.integrity`)."""
+
+    risk: Annotated[float, Field(gt=0, lt=0.5, allow_inf_nan=False)] = Field(
+        1e-5, description="probability that the port position error exceeds the protection level"
+    )
+    alert_limit_m: PositiveFloat = Field(
+        0.08, description="tolerable port position error [m] inside alert_limit_range_m; a pose "
+        "whose protection level exceeds the alert limit is published degraded"
+    )
+    alert_limit_range_m: PositiveFloat = Field(
+        5.0, description="beyond this range [m] the alert limit grows in proportion to the range"
+    )
+
+
 class PipelineConfig(StrictModel):
     """The mission configuration database of seed 000 section 3.3/5.3: modes, strategies by range."""
 
@@ -393,6 +409,7 @@ class PipelineConfig(StrictModel):
     filter_reinit_frames: Annotated[int, Field(ge=1)] = Field(
         2, description="good registrations rejected by the filter gate in a row before re-init"
     )
+    integrity: IntegrityConfig = IntegrityConfig()
     fine_only_tracking: bool = Field(
         True, description="on an established track (rates estimated, the last frames accepted) "
         "ICP starts from the filter's prediction in its fine phase, without the coarse phase "

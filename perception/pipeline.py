@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from perception.config import ICPConfig, MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, make_T
+from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
 from perception.modes import FrameVerdict, ModeLogic
 from perception.numeric import median
 from perception.pointcloud import PointCloud
@@ -613,6 +614,14 @@ class TriDAR:
             for a in blocks:
                 for b in blocks:
                     cov[a, b] = fP[a, b]
+            # Integrity: the port's error bound from the filter's full pose covariance (the
+            # unobservable directions of the registrations grow there, not in the floors).
+            ig = self.pc.integrity
+            r_port = self.target.T_target_port[:3, 3]
+            pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
+            al = alert_limit(float(np.linalg.norm(fp + fR @ r_port)), ig.alert_limit_m, ig.alert_limit_range_m)
+            kw.update(protection_level=pl, alert_limit=al)
+            valid_kw["degraded"] = pl > al
         return StateVector(
             t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
             n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,

@@ -10,6 +10,12 @@ Quantities are relative and kinematic, as the sensor observes them:
 * ``range`` [m] and ``range_rate`` [m/s] (negative when closing) to the target, and ``bearing``
   ``(az, el)`` [rad] of the line of sight (az toward +x, el toward -y, i.e. up).
 
+Every pose carries a ``protection_level`` [m], a bound on the docking port's position error at the
+mission's integrity risk (:mod:`perception.integrity`), and the ``alert_limit`` [m] it is held to.
+A pose whose protection level exceeds its alert limit is published with ``valid.degraded`` set:
+its numbers are the best estimate there is, but it is not valid for closing in (``valid.pose`` is
+False). Without a pose both are 0.
+
 Fields that a mode cannot measure are flagged in ``valid`` and hold zeros: never stale or made-up
 numbers, and never NaN. ``covariance`` is ``(12, 12)`` over ``[position, velocity, attitude
 (small-angle rotation vector, sensor frame), angular_velocity]``; the blocks of invalid fields hold
@@ -43,7 +49,8 @@ class Mode(IntEnum):
 
 @dataclass(frozen=True)
 class Validity:
-    """Which fields of a :class:`StateVector` carry a measurement."""
+    """Which fields of a :class:`StateVector` carry a measurement, and whether the pose meets its
+    alert limit (``degraded``: it does not; see the module docstring)."""
 
     bearing: bool = False
     range: bool = False
@@ -52,22 +59,25 @@ class Validity:
     velocity: bool = False
     attitude: bool = False
     angular_velocity: bool = False
+    degraded: bool = False
 
     @classmethod
     def all(cls) -> Validity:
-        return cls(*(True,) * len(fields(cls)))
+        """Every field measured, the pose within its alert limit."""
+        return cls(*(True,) * (len(fields(cls)) - 1))
 
     @classmethod
     def bearing_only(cls) -> Validity:
         return cls(bearing=True, range=True, range_rate=True)
 
     def as_array(self) -> npt.NDArray[np.float32]:
-        """(7,) float32 flags in field order, for observations."""
+        """(8,) float32 flags in field order, for observations."""
         return np.array([getattr(self, f.name) for f in fields(self)], dtype=np.float32)
 
     @property
     def pose(self) -> bool:
-        return self.position and self.attitude
+        """A pose to fly on: position and attitude measured and within the alert limit."""
+        return self.position and self.attitude and not self.degraded
 
 
 def _zeros(n: int) -> FloatArray:
@@ -93,6 +103,8 @@ class StateVector:
         fitness: inlier fraction of the last registration (0 when none).
         n_points: points in the frame that produced it.
         latency: [s] between the end of the scan and the state becoming available.
+        protection_level: [m] bound on the port position error at the integrity risk (0: no pose).
+        alert_limit: [m] the error tolerated at this range (0: no pose).
     """
 
     t: float
@@ -109,6 +121,8 @@ class StateVector:
     fitness: float = 0.0
     n_points: int = 0
     latency: float = 0.0
+    protection_level: float = 0.0
+    alert_limit: float = 0.0
 
     def __post_init__(self) -> None:
         for name, n in (("position", 3), ("velocity", 3), ("quaternion", 4),
@@ -127,7 +141,8 @@ class StateVector:
         """True when every number in the state is finite."""
         # One concatenation and one reduction: this runs on every env step.
         values = np.concatenate((
-            (self.t, self.range, self.range_rate, self.fitness, self.latency),
+            (self.t, self.range, self.range_rate, self.fitness, self.latency,
+             self.protection_level, self.alert_limit),
             self.position, self.velocity, self.quaternion, self.angular_velocity, self.bearing,
             self.covariance.reshape(-1),
         ))

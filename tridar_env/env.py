@@ -23,7 +23,8 @@ FloatArray = npt.NDArray[np.float64]
 #: (name, size, unit, description) of every block of the flat observation, in order.
 OBSERVATION_STRUCTURE: tuple[tuple[str, int, str, str], ...] = (
     ("mode_onehot", 3, "-", "TriDAR mode: bearing, search, tracking"),
-    ("valid", 7, "-", "validity: bearing, range, range_rate, position, velocity, attitude, angular_velocity"),
+    ("valid", 8, "-", "validity: bearing, range, range_rate, position, velocity, attitude, angular_velocity, "
+     "degraded (the pose's protection level exceeds its alert limit: not valid for closing in)"),
     ("port_position_dock", 3, "m", "port origin in the chaser docking frame (+z ahead)"),
     ("port_velocity_dock", 3, "m/s", "rate of port_position_dock"),
     ("q_dock_port", 4, "-", "port attitude in the docking frame, scalar first (identity = aligned)"),
@@ -35,6 +36,8 @@ OBSERVATION_STRUCTURE: tuple[tuple[str, int, str, str], ...] = (
     ("fuel_fraction", 1, "-", "propellant left / initial propellant"),
     ("time_fraction", 1, "-", "elapsed steps / max_episode_steps"),
     ("chaser_rate_body", 3, "rad/s", "chaser inertial angular velocity, body frame (gyro)"),
+    ("protection_level", 1, "m", "bound on the port position error at the integrity risk (0: no pose)"),
+    ("alert_limit", 1, "m", "port position error tolerated at this range (0: no pose)"),
 )
 OBS_DIM = sum(s for _, s, _, _ in OBSERVATION_STRUCTURE)
 
@@ -117,7 +120,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     block                  size  unit     meaning
     =====================  ====  =======  =============================================================
     mode_onehot            3     -        bearing / search / tracking
-    valid                  7     -        bearing, range, range_rate, position, velocity, attitude, rate
+    valid                  8     -        bearing, range, range_rate, position, velocity, attitude, rate,
+                                          degraded (protection level above the alert limit)
     port_position_dock     3     m        estimated port origin in the chaser docking frame
     port_velocity_dock     3     m/s      its rate
     q_dock_port            4     -        estimated port attitude in the docking frame (w, x, y, z)
@@ -128,9 +132,13 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     fuel_fraction          1     -        propellant left
     time_fraction          1     -        elapsed / max steps
     chaser_rate_body       3     rad/s    chaser gyro
+    protection_level       1     m        bound on the port position error (integrity risk)
+    alert_limit            1     m        error tolerated at this range
     =====================  ====  =======  =============================================================
 
-    Invalid blocks hold zeros (never stale numbers); the validity flags say which.
+    Invalid blocks hold zeros (never stale numbers); the validity flags say which. A degraded pose
+    (``valid`` flag 8) keeps its numbers, so a controller can back away on it, but must not close
+    in on it.
 
     ## Rewards
     ``progress`` (decrease of the true dock-to-port distance), ``lateral`` (decrease of the
@@ -212,6 +220,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
             "omega_port_dock": (-np.pi, np.pi), "range": (0.0, R), "range_rate": (-20.0, 20.0),
             "bearing": (-np.pi, np.pi), "fitness": (0.0, 1.0), "fuel_fraction": (0.0, 1.0),
             "time_fraction": (0.0, 1.0), "chaser_rate_body": (-np.pi, np.pi),
+            "protection_level": (0.0, R), "alert_limit": (0.0, R),
         }
         lo = np.concatenate([np.full(s, per_block[n][0]) for n, s, _, _ in OBSERVATION_STRUCTURE])
         hi = np.concatenate([np.full(s, per_block[n][1]) for n, s, _, _ in OBSERVATION_STRUCTURE])
@@ -259,6 +268,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         obs[S["fuel_fraction"]] = w.mass.propellant_kg / fuel0 if fuel0 > 0 else 0.0
         obs[S["time_fraction"]] = self._steps / self.cfg.env.max_episode_steps
         obs[S["chaser_rate_body"]] = w.gyro()
+        obs[S["protection_level"]] = sv.protection_level
+        obs[S["alert_limit"]] = sv.alert_limit
         # np.clip in place, without its dispatch overhead (NaN propagates the same way).
         np.maximum(obs, self._obs_low64, out=obs)
         np.minimum(obs, self._obs_high64, out=obs)

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.geometry import fast_matrix_to_quat
+from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
 from perception.state import Mode, StateVector, Validity
 from perception.targets import TargetModel
 from tridar_env.world import SensorTruth, World
@@ -42,6 +43,7 @@ def bearing_of(p: np.ndarray) -> np.ndarray:
 
 
 _ALL_VALID = Validity.all()
+_DEGRADED = Validity(*(True,) * 8)
 
 
 @functools.lru_cache(maxsize=32)
@@ -53,6 +55,22 @@ def _truth_covariance(sigmas: tuple[float, float, float, float]) -> np.ndarray:
     return cov
 
 
+def truth_protection_level(
+    sigmas: tuple[float, float, float, float], R_sensor_target: np.ndarray, r_port: np.ndarray | None,
+    ref_point: np.ndarray | None, risk: float,
+) -> float:
+    """Protection level [m] of a truth(-plus-noise) state: the port error bound of its errors.
+
+    With the errors applied at the port (``ref_point`` = the port) the port moves by the position
+    error alone; otherwise the attitude error swings the port about the centre of mass too.
+    """
+    k = integrity_factor(risk)
+    sp = max(sigmas[0], 1e-6)
+    if r_port is None or (ref_point is not None and np.array_equal(ref_point, r_port)):
+        return k * sp
+    return protection_level(port_covariance(_truth_covariance(sigmas), R_sensor_target, r_port), k)
+
+
 def state_from_truth(
     t: float,
     truth: SensorTruth,
@@ -61,6 +79,8 @@ def state_from_truth(
     *,
     errors: np.ndarray | None = None,
     ref_point: np.ndarray | None = None,
+    port: np.ndarray | None = None,
+    integrity: tuple[float, float, float] | None = None,
 ) -> StateVector:
     """A tracking-mode state built from truth, optionally with Gaussian errors.
 
@@ -73,6 +93,9 @@ def state_from_truth(
             e.g. a correlated sequence; drawn from ``rng`` when None.
         ref_point: target-frame point where the position error applies (the attitude error
             turns the target about it); None: the target origin (centre of mass).
+        port: (3,) port position in the target frame [m] (for the protection level).
+        integrity: ``(risk, alert_limit_m, alert_limit_range_m)`` (``pipeline.integrity``);
+            None: no protection level (0) and never degraded.
     """
     p = truth.T_sensor_target[:3, 3].copy()
     v = truth.velocity.copy()
@@ -97,10 +120,21 @@ def state_from_truth(
         v = v + sv * e[3:6]
         w = w + sw * e[9:12]
     rng_m = math.sqrt(float(p @ p))
+    pl = al = 0.0
+    valid = _ALL_VALID
+    if integrity is not None:
+        risk, al_m, al_range = integrity
+        pl = truth_protection_level(sigmas, R, port, ref_point, risk)
+        port_s = p if port is None else p + R @ port
+        al = alert_limit(math.sqrt(float(port_s @ port_s)), al_m, al_range)
+        if pl > al:
+            valid = _DEGRADED
     return StateVector(
         t=t,
         mode=Mode.TRACKING,
-        valid=_ALL_VALID,
+        valid=valid,
+        protection_level=pl,
+        alert_limit=al,
         position=p,
         velocity=v,
         quaternion=fast_matrix_to_quat(R),
@@ -133,8 +167,11 @@ class TruthObserver:
         self.noisy = noisy and any(s > 0 for s in self.sigmas)
         self.tau = e.truth_noise_correlation_s
         self.ref_point = None
+        self.port = None if target is None else np.array(target.T_target_port[:3, 3], dtype=np.float64)
         if e.truth_noise_reference == "port" and target is not None:
-            self.ref_point = np.array(target.T_target_port[:3, 3], dtype=np.float64)
+            self.ref_point = self.port
+        ig = cfg.pipeline.integrity
+        self.integrity = (ig.risk, ig.alert_limit_m, ig.alert_limit_range_m)
         self.last_cloud = None
         self._err: np.ndarray | None = None
         self._t_err = 0.0
@@ -155,10 +192,11 @@ class TruthObserver:
 
     def observe(self, world: World, rng: np.random.Generator) -> StateVector:
         if not self.noisy:
-            return state_from_truth(world.t, world.sensor_truth())
+            return state_from_truth(world.t, world.sensor_truth(), ref_point=self.ref_point, port=self.port,
+                                    integrity=self.integrity)
         e = self._errors(world.t, rng)
         return state_from_truth(world.t, world.sensor_truth(), self.sigmas, errors=e,
-                                ref_point=self.ref_point)
+                                ref_point=self.ref_point, port=self.port, integrity=self.integrity)
 
 
 class TriDARObserver:
@@ -188,7 +226,7 @@ def make_observer(cfg: MissionConfig, target: TargetModel) -> Observer:
     """Factory for ``cfg.env.perception``."""
     kind = cfg.env.perception
     if kind == "truth":
-        return TruthObserver(cfg, noisy=False)
+        return TruthObserver(cfg, noisy=False, target=target)
     if kind == "truth+noise":
         return TruthObserver(cfg, noisy=True, target=target)
     return TriDARObserver(cfg, target)

@@ -50,6 +50,7 @@ from tridar_env.env import (
     envelope_excess,
     observation_slices,
 )
+from tridar_env.observers import truth_protection_level
 from tridar_env.registration import mission_source
 from tridar_env.world import ContactState, World, hull_touches_mesh
 
@@ -173,6 +174,12 @@ class TruthVectorEnv(VectorEnv):
             self._T_target_port[:3, 3].copy() if e.truth_noise_reference == "port" else np.zeros(3)
         )
         self._gyro_sigma = math.radians(ch.gyro_noise_deg_s)
+        ig = cfg.pipeline.integrity
+        # The truth stand-in's errors have a constant covariance, so its protection level is too.
+        self._pl = truth_protection_level(
+            self._sigmas, np.eye(3), self._T_target_port[:3, 3],
+            self._ref_point if e.truth_noise_reference == "port" else None, ig.risk)
+        self._al = (ig.alert_limit_m, ig.alert_limit_range_m)
         proto.close()
         N = num_envs
         self._rngs = [seeding.np_random(None)[0] for _ in range(N)]
@@ -458,12 +465,17 @@ class TruthVectorEnv(VectorEnv):
         obs = np.zeros((N, OBS_DIM))
         S = _S
         obs[:, S["mode_onehot"].start + 2] = 1.0  # tracking
-        obs[:, S["valid"]] = 1.0  # every field valid
+        obs[:, S["valid"].start:S["valid"].stop - 1] = 1.0  # every field valid
         R_ds, p_ds = self._T_dock_sensor[:3, :3], self._T_dock_sensor[:3, 3]
         R_tp, p_tp = self._T_target_port[:3, :3], self._T_target_port[:3, 3]
         R_dp = R_ds @ R_st @ R_tp
         r_port_s = _mv(R_st, np.broadcast_to(p_tp, p.shape))
         obs[:, S["port_position_dock"]] = (r_port_s + p) @ R_ds.T + p_ds
+        port_s = r_port_s + p
+        al = self._al[0] * np.maximum(1.0, np.sqrt(np.einsum("ni,ni->n", port_s, port_s)) / self._al[1])
+        obs[:, S["protection_level"].start] = self._pl
+        obs[:, S["alert_limit"].start] = al
+        obs[:, S["valid"].stop - 1] = self._pl > al  # degraded
         obs[:, S["port_velocity_dock"]] = (vel + _cross(omega, r_port_s)) @ R_ds.T
         obs[:, S["q_dock_port"]] = matrix_to_quat(R_dp)
         obs[:, S["omega_port_dock"]] = omega @ R_ds.T

@@ -303,6 +303,8 @@ def _reference_observation(env, sv) -> np.ndarray:  # type: ignore[no-untyped-de
     obs[s["fuel_fraction"]] = env.world.mass.propellant_kg / env.cfg.dynamics.chaser.propellant_kg
     obs[s["time_fraction"]] = env._steps / env.cfg.env.max_episode_steps
     obs[s["chaser_rate_body"]] = env.world.chaser_angular_velocity_body
+    obs[s["protection_level"]] = sv.protection_level
+    obs[s["alert_limit"]] = sv.alert_limit
     return np.clip(obs, env.observation_space.low, env.observation_space.high).astype(np.float32)
 
 

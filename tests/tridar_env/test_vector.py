@@ -5,10 +5,11 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 import tridar_env  # noqa: F401  (registers the ids)
 from agents.controllers import make_controller
-from tridar_env.env import DockingEnv
+from tridar_env.env import DockingEnv, observation_slices
 from tridar_env.vector import TruthVectorEnv
 
 N = 4
@@ -63,9 +64,13 @@ def test_truth_plus_noise_follows_its_sigmas() -> None:
     noisy = TruthVectorEnv(256, "final_approach", perception="truth+noise", **kw)
     o_t, _ = truth.reset(seed=1)
     o_n, _ = noisy.reset(seed=1)
-    err = (o_n - o_t)[:, 10:13]  # port_position_dock
+    err = (o_n - o_t)[:, observation_slices()["port_position_dock"]]
     assert np.std(err) == pytest.approx(0.02, rel=0.1)
     assert abs(np.mean(err)) < 0.004
+    # The protection level bounds that error at the integrity risk: 0.02 m per axis at the port.
+    pl = o_n[:, observation_slices()["protection_level"]]
+    assert np.allclose(pl, 0.02 * np.sqrt(chi2.isf(noisy.cfg.pipeline.integrity.risk, 3)), rtol=1e-5)
+    assert np.all(np.linalg.norm(err, axis=1) < pl[:, 0])
 
 
 def test_glideslope_docks_every_env_and_rewards_sum() -> None:
@@ -96,7 +101,7 @@ def test_glideslope_docks_every_env_and_rewards_sum() -> None:
     obs, reward, term, trunc, info = env.step(np.zeros((N, 3), dtype=np.float32))
     assert last.any()
     assert np.all(info["t"][last] == 0.0) and not term[last].any() and np.all(reward[last] == 0.0)
-    assert np.all(obs[last, 23] > 20.0)  # range back at the start of the approach
+    assert np.all(obs[last, observation_slices()["range"].start] > 20.0)  # range back at the start
 
 
 def test_bad_input_is_rejected_with_the_field_named() -> None:

@@ -138,8 +138,13 @@ class TargetModel:
         mass: [kg].
         inertia: (3, 3) inertia tensor about the centre of mass, body axes [kg m^2].
         regions: named regions of interest (always ``whole``, ``docking_area`` and ``port``).
-        symmetries: (3, 3) rotations mapping the mesh onto itself (besides identity).
+        symmetries: (3, 3) rotations mapping the mesh onto itself (besides identity): found by
+            :func:`find_symmetries` for loaded and generated targets, empty for the library.
         description: one line for listings.
+        simplified_mesh: a decimated copy of a dense ``mesh`` for the model-side structures (ICP
+            face grid, PAH), or None; see :attr:`model_mesh`.
+        simplification_deviation_m: largest distance [m] found from the simplified surface to
+            ``mesh`` (0 when not simplified).
     """
 
     name: str
@@ -152,6 +157,8 @@ class TargetModel:
     regions: dict[str, RegionOfInterest] = field(default_factory=dict)
     symmetries: list[FloatArray] = field(default_factory=list)
     description: str = ""
+    simplified_mesh: trimesh.Trimesh | None = field(default=None, repr=False)
+    simplification_deviation_m: float = 0.0
     cache: dict[Any, Any] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -200,6 +207,15 @@ class TargetModel:
     def port_axis(self) -> FloatArray:
         """(3,) unit outward approach axis of the port, body frame."""
         return self.T_target_port[:3, 2].copy()
+
+    @property
+    def model_mesh(self) -> trimesh.Trimesh:
+        """The mesh the model-side structures are built on (ICP face grid, PAH database).
+
+        The simplified mesh of a dense file target (see :func:`load_target` ``max_model_faces``),
+        otherwise :attr:`mesh` itself. The sensor and rendering always cast rays on :attr:`mesh`.
+        """
+        return self.mesh if self.simplified_mesh is None else self.simplified_mesh
 
     @property
     def ray(self) -> Any:
@@ -270,13 +286,19 @@ class TargetModel:
         # Caches (KD-trees, Embree scenes) are rebuilt per process rather than pickled.
         state = self.__dict__.copy()
         state["cache"] = {}
-        mesh = state["mesh"]
-        state["mesh"] = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        for key in ("mesh", "simplified_mesh"):
+            mesh = state.get(key)
+            if mesh is not None:
+                state[key] = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        v, f = state["mesh"]
-        state["mesh"] = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        for key in ("mesh", "simplified_mesh"):
+            if state.get(key) is not None:
+                v, f = state[key]
+                state[key] = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        state.setdefault("simplified_mesh", None)
+        state.setdefault("simplification_deviation_m", 0.0)
         self.__dict__.update(state)
 
 
@@ -756,28 +778,55 @@ _LIBRARY_CACHE: dict[str, TargetModel] = {}
 def load_target(
     name_or_path: str | Path,
     *,
-    scale: float = 1.0,
+    scale: float | None = None,
     port: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
     mass: float | None = None,
     reflectivity: float = 0.5,
     specular: bool = False,
+    port_tolerance_m: float = 0.05,
+    max_model_faces: int = 200_000,
+    max_extent_m: float = 200.0,
 ) -> TargetModel:
-    """Load a library target by name, or a mesh file (STL/OBJ/PLY/GLB) through trimesh.
+    """Load a library target by name, or a mesh file (STL/OBJ/PLY/GLB) through trimesh, validated.
 
-    Library targets are built once per process and shared (they are read-only in use).
+    Library targets are built once per process and shared (they are read-only in use); the
+    keywords apply to mesh files only. A mesh file is checked before it is used:
+
+    - non-finite vertex coordinates are refused (checked on the raw file, before trimesh's
+      processing would silently drop them);
+    - a mesh more than ``max_extent_m`` across is refused when ``scale`` is None or 1.0 (a config's
+      default ``scale: 1.0`` counts as not given): CAD exports in millimetres are the usual cause,
+      and ``scale=0.001`` is suggested. Any other ``scale`` is taken as deliberate;
+    - an explicit ``port`` more than ``port_tolerance_m`` from the surface, or whose axis points
+      into the hull (more than 90 deg from the outward normal of the nearest face, or a ray along
+      it meets the target again within the target's size), is refused;
+    - without ``port``, the port is put where a ray down -z through the centre of the mesh's +z
+      bounding face first meets the surface, axis the outward normal there, and a ``UserWarning``
+      says where and how far below that face centre it is;
+    - a mesh of more than ``max_model_faces`` faces keeps its full resolution for the sensor and
+      rendering, and gets a simplified copy for the model-side structures
+      (:attr:`TargetModel.model_mesh`), with the simplification's deviation measured, stored and
+      warned about.
+
+    ``target.symmetries`` is found with :func:`find_symmetries`. Every refusal is a one-line
+    ``ValueError`` that names the file and the problem.
 
     Args:
         name_or_path: a name in :data:`LIBRARY` or a path to a mesh file.
-        scale: uniform scale applied to a file mesh (e.g. 0.001 for millimetres).
-        port: ``(position (3,), axis (3,))`` of the docking port in the file's frame after scaling;
-            default: the centre of the mesh's +z bounding face, axis +z.
+        scale: uniform scale applied to a file mesh (e.g. 0.001 for millimetres); None means 1.0.
+        port: ``(position (3,) [m], axis (3,))`` of the docking port in the file's frame after
+            scaling; the axis is the outward approach direction (any non-zero length).
         mass: mass [kg] of a file target (default 100 kg, uniform density).
         reflectivity: uniform reflectivity of a file target.
         specular: uniform specular flag of a file target.
+        port_tolerance_m: largest distance [m] of an explicit port from the surface.
+        max_model_faces: face count above which the model-side mesh is simplified.
+        max_extent_m: largest extent [m] accepted without an explicit scale other than 1.
 
     Raises:
         FileNotFoundError: a path that does not exist.
-        ValueError: an unknown name, an empty or degenerate mesh, non-finite vertices, zero volume.
+        ValueError: an unknown name, an unreadable, empty or degenerate mesh, non-finite vertices,
+            zero volume, a size that needs a scale, or a port off the surface or facing inward.
     """
     key = str(name_or_path)
     if key in LIBRARY and not Path(key).suffix:
@@ -791,38 +840,43 @@ def load_target(
         )
     if not path.is_file():
         raise FileNotFoundError(f"target mesh file {path} does not exist")
-    if not (np.isfinite(scale) and scale > 0):
+    if scale is not None and not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale={scale} for {path}; expected a finite value > 0")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=True)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise ValueError(f"target mesh file {path} could not be read as a mesh: {exc}") from exc
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise ValueError(f"target mesh file {path} holds no triangles")
-    if not np.all(np.isfinite(loaded.vertices)):
-        raise ValueError(f"target mesh file {path} has non-finite vertex coordinates")
-    mesh = loaded.copy()
-    mesh.apply_scale(scale)
+    if not (np.isfinite(port_tolerance_m) and port_tolerance_m > 0):
+        raise ValueError(f"port_tolerance_m={port_tolerance_m} for {path}; expected > 0 [m]")
+    if int(max_model_faces) < 4:
+        raise ValueError(f"max_model_faces={max_model_faces} for {path}; expected >= 4")
+    m = float(100.0 if mass is None else mass)
+    if not (np.isfinite(m) and m > 0):
+        raise ValueError(f"mass={mass} for {path}; expected > 0 [kg]")
+
+    mesh = _read_mesh(path)
+    mesh.apply_scale(1.0 if scale is None else float(scale))
+    _check_extent(path, mesh, scale, max_extent_m)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) == 0:
         raise ValueError(f"target mesh file {path} has only degenerate (zero-area) triangles")
-    hull_volume = float(mesh.convex_hull.volume) if len(mesh.vertices) >= 4 else 0.0
-    if np.min(mesh.extents) <= 1e-9 or hull_volume <= 1e-12:
+    # Spread about the least-spread direction [m]: zero for a flat or line-like mesh.
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    thinnest = math.sqrt(max(float(np.linalg.eigvalsh(np.cov(v.T))[0]), 0.0)) if len(v) >= 4 else 0.0
+    if np.min(mesh.extents) <= 1e-9 or thinnest <= 1e-9:
         raise ValueError(f"target mesh file {path} has zero volume (flat or degenerate geometry)")
-    m = float(100.0 if mass is None else mass)
-    if not (np.isfinite(m) and m > 0):
-        raise ValueError(f"mass={mass} for {path}; expected > 0 [kg]")
-    solid = mesh if (mesh.is_watertight and mesh.volume > 0) else mesh.convex_hull
-    com = np.asarray(solid.center_mass)
+    closed = bool(mesh.is_watertight)
+    if closed and mesh.volume < 0:
+        mesh.invert()  # an inside-out export: faces wound clockwise seen from outside
+    solid = mesh if (closed and mesh.volume > 0) else _hull_solid(v)
+    com = np.asarray(solid.center_mass, dtype=np.float64)
     inertia = np.asarray(solid.moment_inertia) * (m / solid.mass)
     mesh.apply_translation(-com)
     if port is None:
-        lo, hi = mesh.bounds
-        port_T = port_frame([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]], [0, 0, 1])
+        port_T = _default_port(path, mesh, com)
     else:
-        port_T = port_frame(np.asarray(port[0], dtype=np.float64) - com, port[1])
-    return TargetModel(
+        port_T = _explicit_port(path, mesh, port, com, float(port_tolerance_m))
+    simplified, deviation = None, 0.0
+    if len(mesh.faces) > int(max_model_faces):
+        simplified, deviation = _simplify(path, mesh, int(max_model_faces))
+    target = TargetModel(
         name=path.stem,
         mesh=mesh,
         reflectivity=np.full(len(mesh.faces), float(reflectivity)),
@@ -831,4 +885,313 @@ def load_target(
         mass=m,
         inertia=inertia,
         description=f"mesh file {path.name}",
+        simplified_mesh=simplified,
+        simplification_deviation_m=deviation,
     )
+    target.symmetries = find_symmetries(target.model_mesh)
+    return target
+
+
+# ---------------------------------------------------------------------------------------------
+# Mesh-file validation
+# ---------------------------------------------------------------------------------------------
+def _fmt(v: npt.ArrayLike) -> str:
+    """A (3,) vector as ``(x, y, z)`` with 4 significant digits, for one-line messages."""
+    return "(" + ", ".join(f"{float(x) + 0.0:.4g}" for x in np.asarray(v).reshape(-1)) + ")"
+
+
+def _read_mesh(path: Path) -> trimesh.Trimesh:
+    """The file's triangles, checked for finite coordinates before trimesh's processing."""
+    try:
+        raw = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        msg = " ".join(str(exc).split())
+        raise ValueError(f"target mesh file {path} could not be read as a mesh: {msg}") from exc
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
+        raise ValueError(f"target mesh file {path} holds no triangles")
+    verts = np.asarray(raw.vertices, dtype=np.float64)
+    bad = ~np.all(np.isfinite(verts), axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"target mesh file {path} has non-finite vertex coordinates: {int(bad.sum())} of"
+            f" {len(verts)} vertices (first: index {first}, {_fmt(verts[first])}); expected finite"
+            " numbers"
+        )
+    faces = np.asarray(raw.faces)
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise ValueError(
+            f"target mesh file {path} has faces referring to missing vertices (indices"
+            f" {int(faces.min())}..{int(faces.max())} of {len(verts)} vertices)"
+        )
+    # Merge coincident vertices (an STL repeats each one per face): on integer keys at 1e-8 m of
+    # resolution, as trimesh's processing does, but ~3x faster on millions of faces.
+    keys = np.round(verts * 1e8).astype(np.int64)
+    order = np.lexsort(keys.T[::-1])
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = np.any(keys[order[1:]] != keys[order[:-1]], axis=1)
+    inv = np.empty(len(order), dtype=np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return trimesh.Trimesh(vertices=verts[order[new]], faces=inv[faces], process=False)
+
+
+def _hull_solid(vertices: FloatArray, max_points: int = 50_000) -> trimesh.Trimesh:
+    """Convex hull of (a deterministic subsample of) the vertices: the solid of an open mesh."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) > max_points:
+        extremes = np.concatenate([np.argmin(v, axis=0), np.argmax(v, axis=0)])
+        v = v[np.union1d(np.arange(0, len(v), len(v) // max_points + 1), extremes)]
+    return trimesh.convex.convex_hull(v)
+
+
+def _check_extent(path: Path, mesh: trimesh.Trimesh, scale: float | None, max_extent_m: float) -> None:
+    """Refuse an implausibly large mesh unless a scale other than 1 was given on purpose."""
+    size = float(np.max(mesh.extents))
+    if size <= max_extent_m or (scale is not None and scale != 1.0):
+        return
+    hint = (
+        "it looks like millimetres: pass scale=0.001"
+        if 1e-3 * size <= max_extent_m
+        else "pass the scale that converts its units to metres"
+    )
+    raise ValueError(
+        f"target mesh file {path} is {size:.4g} m across at scale=1, more than"
+        f" max_extent_m={max_extent_m:g} m; {hint} (or raise max_extent_m for a structure truly"
+        " that large)"
+    )
+
+
+def _closest_surface_point(
+    mesh: trimesh.Trimesh, point: FloatArray
+) -> tuple[FloatArray, float, FloatArray]:
+    """Exact closest surface point to one point, and the faces that tie for it.
+
+    Triangles whose bounding box is farther than the nearest vertex cannot hold the closest point,
+    so only the rest go through trimesh's point-triangle projection (fast on millions of faces).
+
+    Returns:
+        closest point (3,) [m], its distance [m], indices of the faces within 1 um of that distance.
+    """
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    lower = np.linalg.norm(np.maximum(np.maximum(lo - point, point - hi), 0.0), axis=1)
+    upper = float(np.sqrt(np.min(np.sum((tri - point) ** 2, axis=2))))
+    cand = np.flatnonzero(lower <= upper + 1e-12)
+    q = trimesh.triangles.closest_point(tri[cand], np.repeat(point[None], len(cand), axis=0))
+    d = np.linalg.norm(q - point, axis=1)
+    best = int(np.argmin(d))
+    return q[best], float(d[best]), cand[d <= d[best] + 1e-6]
+
+
+def _first_hit(mesh: trimesh.Trimesh, origin: FloatArray, direction: FloatArray) -> tuple[float, int]:
+    """Distance [m] along a unit ray to its first crossing of the mesh beyond 0.1 mm, and the face
+    (inf, -1 when it escapes)."""
+    loc, _, tri = mesh.ray.intersects_location([origin], [direction], multiple_hits=True)
+    if len(loc) == 0:
+        return math.inf, -1
+    t = (loc - origin) @ direction
+    ok = t > 1e-4
+    if not ok.any():
+        return math.inf, -1
+    k = int(np.flatnonzero(ok)[np.argmin(t[ok])])
+    return float(t[k]), int(tri[k])
+
+
+def _outward_normal(mesh: trimesh.Trimesh, q: FloatArray, faces: npt.NDArray[np.int64]) -> FloatArray:
+    """Outward unit normal of the surface at ``q`` (mean of the tied faces' normals).
+
+    Winding is trusted on a watertight mesh (made positive-volume on load); on an open mesh the
+    side from which a ray escapes without crossing the mesh again is taken as outside.
+    """
+    n = np.asarray(mesh.face_normals[faces], dtype=np.float64).sum(axis=0)
+    if not np.linalg.norm(n) > 1e-9:
+        n = np.asarray(mesh.face_normals[faces[0]], dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    if not mesh.is_watertight:
+        size = float(np.max(mesh.extents))
+        out_fwd = math.isinf(_first_hit(mesh, q + 1e-3 * size * n, n)[0])
+        out_back = math.isinf(_first_hit(mesh, q - 1e-3 * size * n, -n)[0])
+        if out_back and not out_fwd:
+            n = -n
+    return n
+
+
+def _default_port(path: Path, mesh: trimesh.Trimesh, com: FloatArray) -> FloatArray:
+    """Port where a ray down -z through the centre of the +z bounding face meets the surface (or,
+    when it misses, the nearest hit of a grid of such rays), axis the outward normal; warns."""
+    import warnings
+
+    lo, hi = mesh.bounds
+    top = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])
+    size = float(np.max(hi - lo))
+    where = "where a ray down -z through the centre of the +z bounding face meets the surface"
+    t, face = _first_hit(mesh, top + np.array([0.0, 0.0, size]), np.array([0.0, 0.0, -1.0]))
+    if face >= 0:
+        p = top - np.array([0.0, 0.0, t - size])
+    else:
+        # A hole under the centre (a frame) or a footprint off the centre: the grid ray nearest it.
+        g = np.linspace(0.0, 1.0, 65)
+        gx, gy = np.meshgrid(lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1]))
+        origins = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, hi[2] + size)])
+        order = np.argsort(np.hypot(origins[:, 0] - top[0], origins[:, 1] - top[1]), kind="stable")
+        hit = mesh.ray.intersects_any(origins[order], np.tile([0.0, 0.0, -1.0], (len(order), 1)))
+        first = order[int(np.argmax(hit))]
+        t, face = _first_hit(mesh, origins[first], np.array([0.0, 0.0, -1.0]))
+        p = origins[first] - np.array([0.0, 0.0, t])
+        where = ("where a ray down -z meets the surface nearest the centre of the +z bounding face"
+                 " (a ray through the centre misses the mesh)")
+    n = np.asarray(mesh.face_normals[face], dtype=np.float64)
+    n = n if n[2] > 0 else -n  # hit from above: the outward side faces up
+    gap = float(np.linalg.norm(top - p))
+    warnings.warn(
+        f"target mesh file {path}: no port given; put it at {_fmt(p + com)} m (file frame) with"
+        f" axis {_fmt(n)}, {where}, {gap:.3f} m from that face centre; pass port=(position, axis)"
+        " for the real docking port",
+        UserWarning,
+        stacklevel=3,
+    )
+    return port_frame(p, n)
+
+
+def _explicit_port(
+    path: Path,
+    mesh: trimesh.Trimesh,
+    port: tuple[npt.ArrayLike, npt.ArrayLike],
+    com: FloatArray,
+    tol_m: float,
+) -> FloatArray:
+    """``T_target_port`` of a user's port, refused when off the surface or facing into the hull."""
+    try:
+        pos = np.asarray(port[0], dtype=np.float64).reshape(3)
+        axis = np.asarray(port[1], dtype=np.float64).reshape(3)
+    except (TypeError, ValueError, IndexError) as exc:
+        raise ValueError(
+            f"target mesh file {path}: port={port!r}; expected (position (3,), axis (3,))"
+        ) from exc
+    if not np.all(np.isfinite(pos)):
+        raise ValueError(f"target mesh file {path}: port position {_fmt(pos)} must be finite")
+    norm = float(np.linalg.norm(axis))
+    if not (np.all(np.isfinite(axis)) and norm > 1e-9):
+        raise ValueError(
+            f"target mesh file {path}: port axis {_fmt(axis)} must be finite and non-zero"
+        )
+    axis = axis / norm
+    p = pos - com
+    q, dist, faces = _closest_surface_point(mesh, p)
+    if dist > tol_m:
+        raise ValueError(
+            f"target mesh file {path}: port {_fmt(pos)} m is {dist:.3f} m from the surface (nearest"
+            f" surface point {_fmt(q + com)} m); expected within port_tolerance_m={tol_m:g} m"
+        )
+    n = _outward_normal(mesh, q, faces)
+    angle = float(np.degrees(np.arccos(np.clip(axis @ n, -1.0, 1.0))))
+    if angle > 90.0:
+        raise ValueError(
+            f"target mesh file {path}: port axis {_fmt(axis)} points into the hull, {angle:.0f} deg"
+            f" from the outward surface normal {_fmt(n)} at the port; expected < 90 deg"
+        )
+    size = float(np.max(mesh.extents))
+    t, _ = _first_hit(mesh, q + 1e-3 * axis, axis)
+    if t < size:
+        raise ValueError(
+            f"target mesh file {path}: a ray from the port along its axis {_fmt(axis)} meets the"
+            f" target again {t + 1e-3:.3f} m out ({angle:.0f} deg from the surface normal); expected"
+            " a clear approach axis"
+        )
+    if angle > 30.0:
+        import warnings
+
+        warnings.warn(
+            f"target mesh file {path}: port axis {_fmt(axis)} is {angle:.0f} deg from the surface"
+            f" normal {_fmt(n)} at the port",
+            UserWarning,
+            stacklevel=3,
+        )
+    return port_frame(p, axis)
+
+
+# ---------------------------------------------------------------------------------------------
+# Dense meshes
+# ---------------------------------------------------------------------------------------------
+def _has_quadric_decimation() -> bool:
+    try:
+        import fast_simplification  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _cluster_vertices(mesh: trimesh.Trimesh, cell_m: float) -> trimesh.Trimesh:
+    """Vertex clustering on a voxel grid of ``cell_m`` [m]: one vertex (the mean) per occupied
+    voxel, collapsed and duplicate faces dropped."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    idx = np.floor((v - v.min(axis=0)) / cell_m).astype(np.int64)
+    dims = idx.max(axis=0) + 1
+    lin = np.ravel_multi_index(idx.T, tuple(int(d) for d in dims))
+    _, inv = np.unique(lin, return_inverse=True)
+    inv = inv.reshape(-1)
+    count = np.bincount(inv).astype(np.float64)
+    verts = np.column_stack([np.bincount(inv, weights=v[:, k]) for k in range(3)]) / count[:, None]
+    f = inv[np.asarray(mesh.faces)]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    return trimesh.Trimesh(vertices=verts, faces=f[np.sort(first)], process=True)
+
+
+def _decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """At most ``max_faces`` faces: quadric decimation when fast-simplification is installed,
+    otherwise vertex clustering with the cell grown until the count fits."""
+    if _has_quadric_decimation():
+        return mesh.simplify_quadric_decimation(face_count=max_faces)
+    # About three faces per cell-sized patch of surface on a fine mesh.
+    cell = math.sqrt(3.0 * float(mesh.area) / max_faces)
+    for _ in range(8):
+        out = _cluster_vertices(mesh, cell)
+        if len(out.faces) <= max_faces:
+            return out
+        cell *= 1.05 * math.sqrt(len(out.faces) / max_faces)
+    return out
+
+
+def _surface_deviation(
+    original: trimesh.Trimesh, simplified: trimesh.Trimesh, n: int = 4_000, k: int = 16
+) -> float:
+    """Largest distance [m] from samples of ``simplified`` (vertices and area samples) to the
+    ``original`` surface.
+
+    Each sample is projected onto the ``k`` original faces with the nearest centroids: an upper
+    bound on its distance to the surface (exact on meshes finer than the sample spacing).
+    """
+    rng = np.random.default_rng(0)
+    sv = np.asarray(simplified.vertices)
+    pick = rng.choice(len(sv), size=min(n, len(sv)), replace=False)
+    pts = np.vstack([sv[np.sort(pick)], _area_samples(simplified, n, rng)])
+    tri = np.asarray(original.triangles, dtype=np.float64)
+    kk = min(k, len(tri))
+    _, near = cKDTree(tri.mean(axis=1)).query(pts, k=kk)
+    near = np.asarray(near).reshape(len(pts), kk)
+    q = trimesh.triangles.closest_point(tri[near.ravel()], np.repeat(pts, kk, axis=0))
+    d = np.linalg.norm(q - np.repeat(pts, kk, axis=0), axis=1).reshape(len(pts), kk)
+    return float(d.min(axis=1).max())
+
+
+def _simplify(path: Path, mesh: trimesh.Trimesh, max_faces: int) -> tuple[trimesh.Trimesh, float]:
+    """A simplified copy of a dense mesh and its deviation [m]; warns with both."""
+    import warnings
+
+    simplified = _decimate(mesh, max_faces)
+    if len(simplified.faces) == 0 or not float(simplified.area) > 0:
+        raise ValueError(
+            f"target mesh file {path}: simplifying {len(mesh.faces)} faces to {max_faces} left no"
+            " surface; raise max_model_faces"
+        )
+    deviation = _surface_deviation(mesh, simplified)
+    method = "quadric decimation" if _has_quadric_decimation() else "vertex clustering"
+    warnings.warn(
+        f"target mesh file {path}: {len(mesh.faces)} faces > max_model_faces={max_faces}; ICP and"
+        f" PAH use a {len(simplified.faces)}-face {method} copy (deviation up to"
+        f" {deviation * 1e3:.1f} mm from the surface), the sensor the full mesh",
+        UserWarning,
+        stacklevel=3,
+    )
+    return simplified, deviation

@@ -13,6 +13,13 @@ REGIONS = ("whole", "docking_area", "port", "fov")
 @command("scan", "simulate one sensor frame of a target; write a PLY point cloud and a PNG picture")
 def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target", default="cygnss", help="library name or mesh file (default cygnss)")
+    p.add_argument("--port", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="docking port position of a mesh file target, file frame after --scale "
+                   "[m] (give with --axis; default: placed on the +z face, with a warning)")
+    p.add_argument("--axis", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="outward approach axis of the port of a mesh file target (with --port)")
+    p.add_argument("--scale", type=float, default=None,
+                   help="uniform scale of a mesh file target, e.g. 0.001 for millimetres")
     p.add_argument("--range", dest="range_m", type=float, default=20.0, help="range to the target's "
                    "docking port, which sits on the boresight facing the sensor [m] (default 20)")
     p.add_argument("--pattern", default=None, help="lissajous, rosette, spiral or raster "
@@ -31,6 +38,24 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", default="scan.ply", help="PLY path; the PNG goes next to it")
     p.set_defaults(handler=run)
+
+
+def _target_options(args: argparse.Namespace) -> dict:
+    """``load_target`` keywords from ``--port``/``--axis``/``--scale`` (mesh file targets only)."""
+    if (args.port is None) != (args.axis is None):
+        raise ValueError("--port and --axis must be given together")
+    given = [f"--{k}" for k in ("port", "axis", "scale") if getattr(args, k) is not None]
+    if not Path(args.target).suffix:
+        if given:
+            raise ValueError(f"{' '.join(given)}: only for a mesh file target; {args.target!r} "
+                             "is a library target")
+        return {}
+    opts: dict = {}
+    if args.port is not None:
+        opts["port"] = (tuple(args.port), tuple(args.axis))
+    if args.scale is not None:
+        opts["scale"] = args.scale
+    return opts
 
 
 def _pose(target, range_m: float, rpy_deg) -> object:
@@ -63,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.targets import load_target
 
     cfg = load_config(args.config)
-    target = load_target(args.target)
+    target = load_target(args.target, **_target_options(args))
     T = _pose(target, args.range_m, args.rpy_deg)
     rng = np.random.default_rng(args.seed)
     if args.flash:

@@ -896,8 +896,9 @@ def load_target(
 # Mesh-file validation
 # ---------------------------------------------------------------------------------------------
 def _fmt(v: npt.ArrayLike) -> str:
-    """A (3,) vector as ``(x, y, z)`` with 4 significant digits, for one-line messages."""
-    return "(" + ", ".join(f"{float(x) + 0.0:.4g}" for x in np.asarray(v).reshape(-1)) + ")"
+    """A (3,) vector as ``(x, y, z)``, 4 significant digits at 1e-6 resolution, for one-line
+    messages."""
+    return "(" + ", ".join(f"{round(float(x), 6) + 0.0:.4g}" for x in np.asarray(v).reshape(-1)) + ")"
 
 
 def _read_mesh(path: Path) -> trimesh.Trimesh:

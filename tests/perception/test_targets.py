@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import pickle
+import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
-from perception.targets import ENVELOPES_M, LIBRARY, has_embree, load_target
+from perception.shapes import generate_target, save_generated
+from perception.targets import ENVELOPES_M, LIBRARY, find_symmetries, has_embree, load_target
 
 
 @pytest.mark.parametrize("name", sorted(LIBRARY))
@@ -98,7 +101,8 @@ def test_load_mesh_file_round_trip(tmp_path: Path) -> None:
     box = trimesh.creation.box(extents=(1000.0, 2000.0, 500.0))
     path = tmp_path / "box_mm.stl"
     box.export(path)
-    t = load_target(path, scale=0.001, mass=12.0)
+    with pytest.warns(UserWarning, match="no port given; put it at"):
+        t = load_target(path, scale=0.001, mass=12.0)
     np.testing.assert_allclose(t.extents, [1.0, 2.0, 0.5], atol=1e-9)
     np.testing.assert_allclose(t.port_position, [0, 0, 0.25], atol=1e-9)
     # Uniform box inertia about its centre: m/12 (b^2 + c^2).
@@ -106,7 +110,8 @@ def test_load_mesh_file_round_trip(tmp_path: Path) -> None:
     for ext in ("obj", "ply", "glb"):
         p = tmp_path / f"box.{ext}"
         box.export(p)
-        assert load_target(p, scale=0.001).mesh.faces.shape[0] == 12
+        with pytest.warns(UserWarning, match=f"box.{ext}: no port given"):
+            assert load_target(p, scale=0.001).mesh.faces.shape[0] == 12
 
 
 def test_bad_mesh_files_rejected(tmp_path: Path) -> None:
@@ -130,3 +135,187 @@ def test_bad_mesh_files_rejected(tmp_path: Path) -> None:
     garbage.write_bytes(b"\x00\x01not a mesh")
     with pytest.raises(ValueError, match="garbage.ply"):
         load_target(garbage)
+
+
+# ---------------------------------------------------------------------------------------------
+# Mesh files from users: validation (issue 16)
+# ---------------------------------------------------------------------------------------------
+def _one_line_refusal(path: Path, match: str, **kw: object) -> str:
+    """Load ``path`` expecting a ValueError matching ``match``; the message is one line naming the
+    file."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        with pytest.raises(ValueError, match=match) as info:
+            load_target(path, **kw)  # type: ignore[arg-type]
+    msg = str(info.value)
+    assert "\n" not in msg and path.name in msg
+    return msg
+
+
+def test_library_targets_are_not_simplified() -> None:
+    t = load_target("cubesat")
+    assert t.model_mesh is t.mesh and t.simplification_deviation_m == 0.0
+
+
+def test_non_finite_vertices_refused_before_processing(tmp_path: Path) -> None:
+    # trimesh's processing would drop the bad vertex and its faces and load what is left.
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n")
+    msg = _one_line_refusal(nan, "nan.obj has non-finite vertex coordinates")
+    assert "1 of 4 vertices" in msg
+    inf = tmp_path / "inf.stl"
+    facets = [((0, 0, 0), (1, 0, "inf"), (0, 1, 0)), ((0, 0, 0), (0, 1, 0), (0, 0, 1)),
+              ((0, 0, 0), (0, 0, 1), (1, 0, 0)), ((1, 0, 0), (0, 0, 1), (0, 1, 0))]
+    body = "".join(
+        "facet normal 0 0 0\nouter loop\n"
+        + "".join(f"vertex {x} {y} {z}\n" for x, y, z in f)
+        + "endloop\nendfacet\n"
+        for f in facets
+    )
+    inf.write_text(f"solid bad\n{body}endsolid bad\n")
+    _one_line_refusal(inf, "inf.stl has non-finite vertex coordinates")
+
+
+@pytest.fixture(scope="module")
+def flat_face_file(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray, np.ndarray]:
+    path = tmp_path_factory.mktemp("meshes") / "flat_face.stl"
+    pos, axis = save_generated("flat_face", 3, path)
+    return path, pos, axis
+
+
+def test_explicit_port_on_the_surface_is_kept(flat_face_file) -> None:
+    path, pos, axis = flat_face_file
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a correct port loads silently
+        t = load_target(path, port=(pos, 2.0 * axis))
+    _, d, _ = trimesh.proximity.closest_point(t.mesh, t.port_position[None])
+    assert d[0] < 1e-3
+    np.testing.assert_allclose(t.port_axis, axis, atol=1e-12)
+    # Same geometry as the generated target: the port sits at the same place relative to the mesh.
+    g = generate_target("flat_face", 3)
+    np.testing.assert_allclose(t.port_position - t.bounds[0], g.port_position - g.bounds[0],
+                               atol=1e-5)
+    # A port a few centimetres off (inside the tolerance) is accepted as given.
+    t2 = load_target(path, port=(pos + 0.03 * axis, axis))
+    np.testing.assert_allclose(t2.port_position - t.port_position, 0.03 * axis, atol=1e-9)
+
+
+def test_port_off_the_surface_refused_naming_the_distance(flat_face_file) -> None:
+    path, pos, axis = flat_face_file
+    msg = _one_line_refusal(path, r"is 0\.300 m from the surface", port=(pos + 0.3 * axis, axis))
+    assert "port_tolerance_m=0.05" in msg
+    # The tolerance is a keyword.
+    t = load_target(path, port=(pos + 0.3 * axis, axis), port_tolerance_m=0.5)
+    assert np.isfinite(t.port_position).all()
+
+
+def test_port_axis_into_the_hull_refused_naming_the_angle(flat_face_file) -> None:
+    path, pos, axis = flat_face_file
+    _one_line_refusal(path, "points into the hull, 180 deg from the outward surface normal",
+                      port=(pos, -axis))
+    tilted = np.cos(np.radians(120)) * axis + np.sin(np.radians(120)) * np.cross(axis, [1, 0, 0])
+    _one_line_refusal(path, "points into the hull, 120 deg", port=(pos, tilted))
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0]):
+        _one_line_refusal(path, "port axis .* must be finite and non-zero", port=(pos, bad))
+    _one_line_refusal(path, "port position .* must be finite", port=([np.inf, 0, 0], axis))
+
+
+def test_port_whose_approach_crosses_the_target_refused(tmp_path: Path) -> None:
+    # A port on the bus's +x face looking along +x, with a plate standing 0.5 m in front of it.
+    parts = [trimesh.creation.box(extents=(1, 1, 1)),
+             trimesh.creation.box(extents=(0.05, 0.6, 0.6),
+                                  transform=trimesh.transformations.translation_matrix((1.0, 0, 0))),
+             trimesh.creation.box(extents=(0.5, 0.05, 0.05),
+                                  transform=trimesh.transformations.translation_matrix((0.75, 0.25, 0.25)))]
+    path = tmp_path / "blocked.stl"
+    trimesh.util.concatenate(parts).export(path)
+    _one_line_refusal(path, r"a ray from the port along its axis .* meets the target again 0\.47",
+                      port=((0.5, 0.0, 0.0), (1.0, 0.0, 0.0)))
+
+
+def test_missing_port_warns_where_and_how_far(tmp_path: Path) -> None:
+    # A mast on top lifts the bounding box 0.5 m above the bus face the port should go on.
+    bus = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    mast = trimesh.creation.box(extents=(0.05, 0.05, 0.5),
+                                transform=trimesh.transformations.translation_matrix((0.3, 0.3, 0.75)))
+    path = tmp_path / "masted.stl"
+    trimesh.util.concatenate([bus, mast]).export(path)
+    with pytest.warns(UserWarning, match=r"masted\.stl: no port given; put it at \(0, 0, 0\.5\) m"
+                      r" .*0\.500 m from that face centre") as rec:
+        t = load_target(path)
+    assert all("\n" not in str(w.message) for w in rec)
+    _, d, _ = trimesh.proximity.closest_point(t.mesh, t.port_position[None])
+    assert d[0] < 1e-6
+    np.testing.assert_allclose(t.port_axis, [0, 0, 1], atol=1e-12)
+
+
+def test_missing_port_on_a_frame_lands_on_a_beam(tmp_path: Path) -> None:
+    path = tmp_path / "frame.stl"
+    save_generated("thin_frame", 1, path)
+    with pytest.warns(UserWarning, match="a ray through the centre misses the mesh"):
+        t = load_target(path)
+    _, d, tri = trimesh.proximity.closest_point(t.mesh, t.port_position[None])
+    assert d[0] < 1e-6 and t.mesh.face_normals[tri[0]] @ t.port_axis > 0.99
+
+
+def test_millimetre_mesh_refused_unless_scaled(tmp_path: Path) -> None:
+    path = tmp_path / "bus_mm.stl"
+    trimesh.creation.box(extents=(1200.0, 800.0, 500.0)).export(path)
+    for scale in (None, 1.0):  # 1.0 is what a config's default passes: not a deliberate scale
+        msg = _one_line_refusal(path, "is 1200 m across at scale=1", scale=scale)
+        assert "scale=0.001" in msg
+    with pytest.warns(UserWarning, match="no port given"):
+        t = load_target(path, scale=0.001)
+    np.testing.assert_allclose(t.extents, [1.2, 0.8, 0.5], atol=1e-9)
+    with pytest.warns(UserWarning, match="no port given"):
+        assert load_target(path, max_extent_m=2000.0).extents[0] == pytest.approx(1200.0)
+
+
+def test_dense_mesh_gets_a_simplified_model_mesh(tmp_path: Path) -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=7, radius=1.5)  # 327,680 faces
+    path = tmp_path / "dense.stl"
+    sphere.export(path)
+    start = time.perf_counter()
+    with pytest.warns(UserWarning, match=r"327680 faces > max_model_faces=200000; ICP and PAH use"):
+        t = load_target(path, port=((0.0, 0.0, 1.5), (0.0, 0.0, 1.0)))
+    elapsed = time.perf_counter() - start
+    assert elapsed < 10.0, f"dense mesh took {elapsed:.1f} s to load"
+    assert len(t.mesh.faces) == 327_680  # the sensor keeps the full mesh
+    assert t.model_mesh is not t.mesh and 1_000 < len(t.model_mesh.faces) <= 200_000
+    assert 0.0 < t.simplification_deviation_m < 0.005
+    # The reported deviation bounds what an outside reference measures on the simplified vertices.
+    v = t.model_mesh.vertices[:: max(1, len(t.model_mesh.vertices) // 300)]
+    _, d, _ = trimesh.proximity.closest_point(t.mesh, v)
+    assert d.max() <= 1.5 * t.simplification_deviation_m + 1e-4
+    # It survives a trip to a worker process.
+    t2 = pickle.loads(pickle.dumps(t))
+    np.testing.assert_array_equal(t2.model_mesh.faces, t.model_mesh.faces)
+    assert t2.simplification_deviation_m == t.simplification_deviation_m
+
+
+def test_loaded_plate_symmetries_found_and_true(tmp_path: Path) -> None:
+    path = tmp_path / "plate.stl"
+    pos, axis = save_generated("symmetric_plate", 2, path)
+    t = load_target(path, port=(pos, axis))
+    assert len(t.symmetries) == 7  # square plate: the dihedral group of order 8
+    for R in t.symmetries:
+        _, d, _ = trimesh.proximity.closest_point(t.mesh, t.mesh.vertices @ R.T)
+        assert d.max() < 1e-5
+
+
+def test_loaded_assembly_has_no_symmetry(tmp_path: Path) -> None:
+    path = tmp_path / "assembly.stl"
+    pos, axis = save_generated("assembly", 4, path)
+    assert load_target(path, port=(pos, axis)).symmetries == []
+
+
+def test_find_symmetries_on_reference_solids() -> None:
+    # Rotation groups: rectangular box D2 (3), cube O (23), hexagonal prism D6 (11).
+    assert len(find_symmetries(trimesh.creation.box(extents=(2.0, 1.5, 0.3)))) == 3
+    assert len(find_symmetries(trimesh.creation.box(extents=(1.0, 1.0, 1.0)))) == 23
+    assert len(find_symmetries(trimesh.creation.cylinder(0.5, 2.0, sections=6))) == 11
+    wedge = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    wedge = trimesh.util.concatenate([wedge, trimesh.creation.box(
+        extents=(0.3, 0.3, 0.3), transform=trimesh.transformations.translation_matrix((0.8, 0.3, 0.4)))])
+    wedge.apply_translation(-wedge.center_mass)
+    assert find_symmetries(wedge) == []

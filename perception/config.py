@@ -52,6 +52,7 @@ __all__ = [
     "PointingConfig",
     "RewardConfig",
     "ScanConfig",
+    "ScanPlanConfig",
     "SensorConfig",
     "StrictModel",
     "TOFConfig",
@@ -284,6 +285,17 @@ class ICPConfig(StrictModel):
     degeneracy_ratio: Annotated[float, Field(gt=0, lt=1)] = Field(
         1e-4, description="information eigenvalue ratio below which a direction is unobservable"
     )
+    min_direction_support: NonNegFloat = Field(
+        0.0, description="effective number of points that must carry a direction's information "
+        "for it to count as observed (0: off)"
+    )
+    edge_ambiguity_sigmas: NonNegFloat = Field(
+        0.0, description="a grazing match lying within this many range sigmas (plus the model "
+        "spacing) of a differently oriented face informs no direction: edge mixing, which held "
+        "a flat face's wrong in-plane pose with confidence. Off by default (0): at 2.5 it also "
+        "took the in-plane information of the CYGNSS-like port region at 5 m (errors 1 cm -> "
+        "5-18 cm, every frame degraded); the scan planner's predictions use it"
+    )
     model_noise_fraction: NonNegFloat = Field(
         0.1, description="model resolution error as a fraction of the model sample spacing"
     )
@@ -339,6 +351,24 @@ class IntegrityConfig(StrictModel):
     alert_limit_range_m: PositiveFloat = Field(
         5.0, description="beyond this range [m] the alert limit grows in proportion to the range"
     )
+
+
+class ScanPlanConfig(StrictModel):
+    """Observability-aware choice of the tracking region (:mod:`perception.observability`)."""
+
+    mode: Literal["range", "observability"] = Field(
+        "range", description="range: seed 000's regions by range; observability: the candidate "
+        "region with the smallest predicted bound at the port (range strategy as the default)"
+    )
+    period_s: PositiveFloat = Field(1.0, description="re-plan at least this often while tracking [s]")
+    replan_range_fraction: PositiveFloat = Field(0.1, description="re-plan when the range changed by this fraction")
+    rays: Annotated[int, Field(ge=20, le=5000)] = Field(300, description="rays per predicted scan")
+    switch_factor: Annotated[float, Field(ge=1, allow_inf_nan=False)] = Field(
+        1.5, description="leave the range strategy's region only for a bound this many times smaller"
+    )
+    attitude_lever_m: NonNegFloat = Field(0.5, description="attitude bound weight in the score [m/rad]")
+    edge_ambiguity_sigmas: NonNegFloat = Field(2.5, description="as icp.edge_ambiguity_sigmas")
+    min_support: NonNegFloat = Field(5.0, description="as icp.min_direction_support (frame points)")
 
 
 class PipelineConfig(StrictModel):
@@ -410,6 +440,7 @@ class PipelineConfig(StrictModel):
         2, description="good registrations rejected by the filter gate in a row before re-init"
     )
     integrity: IntegrityConfig = IntegrityConfig()
+    scan_plan: ScanPlanConfig = ScanPlanConfig()
     fine_only_tracking: bool = Field(
         True, description="on an established track (rates estimated, the last frames accepted) "
         "ICP starts from the filter's prediction in its fine phase, without the coarse phase "

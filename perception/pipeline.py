@@ -30,6 +30,7 @@ from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, ma
 from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
 from perception.modes import FrameVerdict, ModeLogic
 from perception.numeric import median
+from perception.observability import ScanPlanner
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
 from perception.scan_patterns import make_pattern, steer_to_region
@@ -160,6 +161,10 @@ class TriDAR:
         self.model = prepare_model(target, self.pc.icp.model_points)
         self._pah = pah
         self.logic = ModeLogic(self.pc, self.sensor.transition_range_m)
+        self.planner: ScanPlanner | None = None
+        if self.pc.scan_plan.mode == "observability":
+            self.planner = ScanPlanner(target, self.sensor, self.model, self.pc.scan_plan,
+                                       self.pc.icp.noise_floor_fraction)
         self.R_nominal = nominal_attitude(config, target)
         self.frame_period = 1.0 / self.pc.frame_rate_hz
         self.max_pose_age = self.pc.loss_of_track_frames * self.frame_period + self.pc.tracking_latency_s + 1e-9
@@ -194,6 +199,8 @@ class TriDAR:
         self._sym_votes = 0
         self._sym_candidate = -1
         self._lost_track: PoseFilter | None = None
+        if self.planner is not None:
+            self.planner.reset()
         self.stats = PipelineStats()
 
     def seed_pose(self, T_sensor_target: npt.ArrayLike, t: float) -> None:
@@ -440,10 +447,13 @@ class TriDAR:
         return cov
 
     # ------------------------------------------------------------------ tracking
-    def _tracking_pattern(self, T_pred: FloatArray) -> tuple[Any, str]:
+    def _tracking_pattern(self, T_pred: FloatArray, t: float = 0.0) -> tuple[Any, str]:
         rng_m = float(np.linalg.norm(T_pred[:3, 3]))
         region = self.logic.region_for_range(rng_m)
         roi = self.target.regions.get(region) or self.target.regions["whole"]
+        if self.planner is not None:
+            roi, _ = self.planner.choose(T_pred, region, self.frame_index, t)
+            region = roi.name
         try:
             pattern = self.sensor.make_scan_pattern(self.frame_index, T_pred, roi)
         except ValueError:
@@ -453,7 +463,7 @@ class TriDAR:
     def _tracking_frame(self, scene: TruthScene | PointCloud, t: float) -> None:
         f = self.filter
         T_start = f.pose_at(t)
-        pattern, _ = self._tracking_pattern(T_start)
+        pattern, _ = self._tracking_pattern(T_start, t)
         cloud = self._scan(scene, t, pattern)
         self.last_cloud = cloud
         self.busy_until = cloud.t_end + self.pc.tracking_latency_s

@@ -59,6 +59,8 @@ __all__ = [
     "prepare_model",
     "icp",
     "information_matrix",
+    "information_rows",
+    "edge_ambiguous",
     "covariance_from_information",
     "covariance_about_sensor_origin",
     "validate_points",
@@ -612,6 +614,25 @@ def _residual_variance(
     return sig**2 * (cos**2 + floor_fraction**2) + model_sigma**2
 
 
+def information_rows(
+    points_model_sensor: npt.ArrayLike,
+    normals_sensor: npt.ArrayLike,
+    sigma: float | npt.ArrayLike,
+    directions: npt.ArrayLike,
+    center: npt.ArrayLike,
+    floor_fraction: float = 0.2,
+    model_sigma_m: float = 0.0,
+) -> FloatArray:
+    """(K, 6) rows ``A_i / sqrt(var_i)`` whose ``rows^T rows`` is :func:`information_matrix`."""
+    S = np.asarray(points_model_sensor, dtype=np.float64)
+    Nn = np.asarray(normals_sensor, dtype=np.float64)
+    D = np.asarray(directions, dtype=np.float64)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (S.shape[0],))
+    A = _jacobian_rows(S - c, Nn)
+    return A / np.sqrt(_residual_variance(sig, Nn, D, floor_fraction, model_sigma_m))[:, None]
+
+
 def information_matrix(
     points_model_sensor: npt.ArrayLike,
     normals_sensor: npt.ArrayLike,
@@ -644,31 +665,38 @@ def information_matrix(
     Returns:
         (6, 6) information matrix [1/m^2, 1/(m rad), 1/rad^2].
     """
-    S = np.asarray(points_model_sensor, dtype=np.float64)
-    Nn = np.asarray(normals_sensor, dtype=np.float64)
-    D = np.asarray(directions, dtype=np.float64)
-    c = np.asarray(center, dtype=np.float64).reshape(3)
-    sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (S.shape[0],))
-    A = _jacobian_rows(S - c, Nn)
-    w = 1.0 / _residual_variance(sig, Nn, D, floor_fraction, model_sigma_m)
-    return (A * w[:, None]).T @ A
+    rows = information_rows(points_model_sensor, normals_sensor, sigma, directions, center,
+                            floor_fraction, model_sigma_m)
+    return rows.T @ rows
+
+
+#: Components of an unobservable direction below this (unit eigenvector) are round-off mixing.
+_MIX_TOL = 0.05
 
 
 def covariance_from_information(
-    H: npt.ArrayLike, length_scale_m: float, degeneracy_ratio: float = 1e-4
+    H: npt.ArrayLike, length_scale_m: float, degeneracy_ratio: float = 1e-4,
+    rows: npt.ArrayLike | None = None, min_support: float = 0.0,
 ) -> tuple[FloatArray, list[str]]:
     """Invert an information matrix, flagging and capping unobservable directions.
 
     Rotations are scaled by ``length_scale_m`` (a rotation ``phi`` moves the target's points by
-    ~``L phi``) so translation and rotation information compare fairly. Eigenvalues below
-    ``degeneracy_ratio`` times the largest are unobservable: their variance is
-    :data:`FAILURE_VARIANCE` and the dominant component of each such eigenvector is named in the
-    returned list.
+    ~``L phi``) so translation and rotation information compare fairly. A direction (eigenvector
+    of the scaled information) is unobservable when its eigenvalue is below ``degeneracy_ratio``
+    times the largest, or, given the per-point ``rows``, when fewer than ``min_support`` points
+    effectively carry it: with contributions ``c_i = w_i (A_i v)^2`` the effective count is
+    ``(sum c)^2 / sum c^2``. Two grazing points that matched the side of an appendage do not
+    observe a flat face's in-plane motion, however much weight the noise model gives them: a
+    mis-association of a few points must not turn into a confident direction. Unobservable
+    directions get :data:`FAILURE_VARIANCE` along themselves (not along the nearest axis, which
+    would leave part of them overconfident), and the dominant component of each is named.
 
     Args:
         H: (6, 6) information matrix in the twist of :attr:`RegistrationResult.covariance`.
         length_scale_m: characteristic size of the target [m] (its radius).
         degeneracy_ratio: relative eigenvalue threshold.
+        rows: (K, 6) per-point rows ``sqrt(w_i) A_i`` whose ``rows^T rows`` is ``H`` (optional).
+        min_support: effective number of points a direction needs (with ``rows``).
 
     Returns:
         (6, 6) covariance and the list of degenerate axis names (ordered as :data:`AXIS_NAMES`).
@@ -685,16 +713,24 @@ def covariance_from_information(
     if lam_max <= 0:
         return FAILURE_VARIANCE * np.eye(6), list(AXIS_NAMES)
     weak = lam < degeneracy_ratio * lam_max
+    if rows is not None and min_support > 0:
+        c = np.square(np.asarray(rows, dtype=np.float64) @ (sc[:, None] * V))  # (K, 6)
+        tot = c.sum(axis=0)
+        sq = np.einsum("ij,ij->j", c, c)
+        n_eff = np.where(sq > 0, tot * tot / np.where(sq > 0, sq, 1.0), 0.0)
+        weak |= n_eff < min_support
     inv = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, lam))
-    cov = ((V * inv) @ V.T) * scale
+    Vs = sc[:, None] * V  # back to the unscaled twist
+    cov = (Vs * inv) @ Vs.T
     names: set[str] = set()
     for k in np.flatnonzero(weak):
         names.add(AXIS_NAMES[int(np.argmax(np.abs(V[:, k])))])
-    # The pseudo-inverse is blind along unobservable directions; the named axes get the huge
-    # variance on their diagonal instead (other axes keep their bound).
-    for a in names:
-        i = AXIS_NAMES.index(a)
-        cov[i, i] += FAILURE_VARIANCE
+        # Unknown along the direction itself (finite, so nothing downstream meets inf); its
+        # small components (round-off mixing with well-observed axes, which a variance of 1e6
+        # would turn into metres) are dropped.
+        v = np.where(np.abs(V[:, k]) < _MIX_TOL, 0.0, V[:, k])
+        u = sc * v
+        cov += FAILURE_VARIANCE * np.outer(u, u) / float(u @ u)
     cov = 0.5 * (cov + cov.T)
     return cov, [a for a in AXIS_NAMES if a in names]
 
@@ -1147,6 +1183,45 @@ def _model_sigma(mc: ModelCloud, cfg: ICPConfig) -> float:
     return 0.0 if mc.grid is not None else float(cfg.model_noise_fraction) * mc.spacing
 
 
+#: A grazing match (``|n . d|`` below this) is checked for edge ambiguity before it counts.
+_GRAZING_COS = 0.25
+#: Model normals this far apart (cosine below) are different faces for the ambiguity test.
+_OTHER_FACE_COS = 0.7
+
+
+def edge_ambiguous(mc: ModelCloud, foot: FloatArray, normal: FloatArray, sig: FloatArray,
+                    cos_ray: FloatArray, n_sigmas: float) -> npt.NDArray[np.bool_]:
+    """Grazing matches that another face of the model explains as well: edge mixing.
+
+    A point whose ray meets its face at a grazing angle carries a large weight in the
+    information (its range noise barely moves it off that face), but near an edge the same point
+    lies within the noise of the neighbouring face too: a face-on point whose noise put it a few
+    centimetres below a box's front face is "on" the side face. Which face it came from is not
+    known, so it pins nothing: a wrong pose of a flat face held by a strip of such points would
+    otherwise look confident. A grazing match is ambiguous when a model sample whose normal
+    differs by more than ~45 deg lies within ``n_sigmas`` sigmas plus the model spacing of its
+    foot.
+
+    Args:
+        mc: the model.
+        foot: (K, 3) matched surface points, target frame.
+        normal: (K, 3) their unit normals, target frame.
+        sig: (K,) range sigma of the points [m].
+        cos_ray: (K,) ``normal . ray direction``.
+    """
+    out = np.zeros(foot.shape[0], dtype=bool)
+    g = np.flatnonzero(np.abs(cos_ray) < _GRAZING_COS)
+    if g.size == 0:
+        return out
+    r = n_sigmas * sig[g] + mc.spacing
+    dist, idx = mc.kdtree.query(foot[g], k=12, distance_upper_bound=float(r.max()))
+    near = (idx < mc.points.shape[0]) & (dist <= r[:, None])
+    nb = mc.normals[np.minimum(idx, mc.points.shape[0] - 1)]
+    other = np.einsum("ikj,ij->ik", nb, normal[g]) < _OTHER_FACE_COS
+    out[g] = np.any(near & other, axis=1)
+    return out
+
+
 def _finish(
     P: FloatArray,
     sig: FloatArray,
@@ -1198,13 +1273,20 @@ def _finish(
     # the position information the patch does carry.
     foot_s = m.foot @ R.T + t
     c = foot_s.mean(axis=0)
-    H = information_matrix(
+    rows = information_rows(
         foot_s, m.normal @ R.T, sig[m.sel], D[m.sel], c, cfg.noise_floor_fraction,
         _model_sigma(mc, cfg),
     )
+    if cfg.edge_ambiguity_sigmas > 0:
+        # Edge mixing: grazing matches another face explains as well inform no direction.
+        amb = edge_ambiguous(mc, m.foot, m.normal, sig[m.sel],
+                              np.einsum("ij,ij->i", m.normal, d_all[m.sel]), cfg.edge_ambiguity_sigmas)
+        rows[amb] = 0.0
+    H = rows.T @ rows
     dc = (foot_s - c).ravel()
     patch = max(math.sqrt(float(dc @ dc) / n_in), 0.05)
-    cov_c, degenerate = covariance_from_information(H, patch, cfg.degeneracy_ratio)
+    cov_c, degenerate = covariance_from_information(H, patch, cfg.degeneracy_ratio, rows,
+                                                    cfg.min_direction_support)
     J = np.eye(6)
     J[:3, 3:] = -skew(t - c)  # origin shift of a rotation about c: rho_o = rho_c + phi x (t - c)
     cov = J @ cov_c @ J.T

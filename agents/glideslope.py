@@ -11,21 +11,32 @@ port sits at ``p`` (+z ahead); the chaser's own acceleration ``a`` (body frame) 
   approach (hold point) while the lateral error exceeds the cone ``lateral_cone * z``;
 * attitude (6-DOF option): a PD on the port attitude error and relative rate.
 
-When the pose is not valid (bearing mode, search, loss of track) the rule is **never act on a stale
-pose**: null the measured range rate if it is closing (a braking impulse along the line of sight,
-which is known from the bearing), otherwise coast with zero thrust. Inside ``commit_range_m`` of the
-port (the last valid pose said so) the approach is committed: braking there would turn a nominal
-contact into a too-slow one, so the controller coasts (zero thrust) at its closing speed instead.
+Integrity (:mod:`agents.safety`, DESIGN.md "Integrity"): the law flies only a *healthy* pose
+(position and velocity valid, not degraded). The controller dead-reckons the port from its last
+healthy pose with its own commanded accelerations (through the CW model when its docking frame is
+constant in LVLH, else in free fall with the gyro), and when the pose is invalid or
+degraded it brakes the closing speed to zero and holds, or, inside ``safety.hold_range_m`` (5 m)
+of the port, retreats along the docking axis to that hold point at ``safety.v_retreat``; lateral
+motion is nulled. It never coasts into the target on a lost track. The one exception is a
+healthy pose lost (not degraded) in the last ``safety.commit_range_m`` (0.4 m), on the axis and
+inside the envelope's closing speeds: braking there would turn a docking into a too-slow contact,
+so the chaser coasts in. A degraded pose there aborts (backs away). The approach resumes after
+``safety.resume_s`` of healthy poses. Before the first healthy pose of an episode (acquisition)
+there is nothing to dead-reckon: a closing range rate is braked along the line of sight (known
+from the bearing) when it is measured, else the chaser coasts.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+from agents.lqr import dock_frame_in_lvlh, docking_frame_model, port_lever_dock
+from agents.safety import CollisionAvoidance, SafetyGains
 from perception.config import MissionConfig
+from tridar_env.dynamics import mean_motion
 from tridar_env.env import observation_slices
 
 _S = observation_slices()
@@ -45,6 +56,7 @@ class GlideslopeGains:
     commit_range_m: float = 1.0  # [m] no hold point closer than this (a stop there is a collision)
     kp_att: float = 0.4  # [1/s^2] attitude loop (6-DOF)
     kd_att: float = 1.2  # [1/s]
+    safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
 
 
 class GlideslopeController:
@@ -68,11 +80,19 @@ class GlideslopeController:
             raise ValueError("GlideslopeController expects dynamics.chaser.thrust_frame='body'")
         m0 = ch.dry_mass_kg + ch.propellant_kg
         self.inertia = m0 * (2.0 * ch.hull_radius_m) ** 2 / 6.0
-        self._last_axial = float("inf")
+        self.dock = np.array(ch.dock_position_m, dtype=np.float64)
+        env = cfg.env.envelope
+        dt = cfg.env.frame_period_s * cfg.env.frame_skip
+        R = dock_frame_in_lvlh(cfg)  # constant docking frame: dead-reckon with the CW model
+        model = None if R is None else docking_frame_model(mean_motion(cfg.dynamics.orbit.altitude_m), dt, R)
+        self.safety = CollisionAvoidance(
+            dt, self.dock, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
+            model=model, lever=port_lever_dock(cfg) if model is not None else (0.0, 0.0, 0.0),
+        )
 
     def reset(self) -> None:
-        """Forget the last valid axial distance (the only memory: the commit rule)."""
-        self._last_axial = float("inf")
+        """Forget the episode (the dead-reckoned port and the avoidance state)."""
+        self.safety.reset()
 
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
@@ -81,20 +101,21 @@ class GlideslopeController:
         """Desired chaser acceleration, body frame [m/s^2]."""
         g = self.g
         valid = obs[_S["valid"]]
-        pose_ok = valid[3] > 0.5 and valid[4] > 0.5
-        if not pose_ok:
-            if self._last_axial <= g.commit_range_m:
-                return np.zeros(3)  # committed: coast into contact
-            # No trusted pose: brake a closing range rate along the line of sight, else coast.
+        p = obs[_S["port_position_dock"]].astype(np.float64)
+        v = obs[_S["port_velocity_dock"]].astype(np.float64)
+        mode = self.safety.update(
+            obs, p + self.dock if valid[3] > 0.5 else None, v if valid[4] > 0.5 else None
+        )
+        if mode in ("avoid", "commit"):
+            return self.safety.accel(obs)
+        if mode == "blind":
+            # No pose yet: brake a closing range rate along the line of sight, else coast.
             if valid[2] > 0.5 and obs[_S["range_rate"]][0] < -0.01:
                 az, el = obs[_S["bearing"]]
                 los = np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
                 return -g.kv * float(obs[_S["range_rate"]][0]) * -los
             return np.zeros(3)
-        p = obs[_S["port_position_dock"]].astype(np.float64)
-        v = obs[_S["port_velocity_dock"]].astype(np.float64)
         z = max(p[2], 0.0)
-        self._last_axial = z
         lat = np.hypot(p[0], p[1])
         v_des = float(np.clip(g.slope * z, g.v_final, g.v_max))
         if z > g.commit_range_m and lat > g.lateral_cone * z + 0.05:
@@ -106,12 +127,18 @@ class GlideslopeController:
 
     def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
         a = self.accel_command(obs)
-        thrust = a * self._mass(obs) / self.max_thrust
+        mass = self._mass(obs)
+        thrust = a * mass / self.max_thrust
+        if self.safety.mode in ("nominal", "blind"):
+            thrust = np.clip(thrust, -1.0, 1.0)
+        else:  # an avoidance keeps its direction at the thrust limit
+            thrust = thrust / max(1.0, float(np.max(np.abs(thrust))))
+        self.safety.applied(thrust * self.max_thrust / mass)
         if not self.six_dof:
-            return np.clip(thrust, -1.0, 1.0).astype(np.float32)
+            return thrust.astype(np.float32)
         torque = np.zeros(3)
         valid = obs[_S["valid"]]
-        if valid[5] > 0.5:
+        if valid[5] > 0.5 and valid[7] < 0.5:
             q = obs[_S["q_dock_port"]].astype(np.float64)
             # Desired: port frame = dock frame rotated by R_PORT_DOCK (x along, z against).
             from scipy.spatial.transform import Rotation

@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 from perception.config import MissionConfig
 from perception.targets import load_target
 from tridar_env.dynamics import cw_stm, mean_motion
-from tridar_env.env import observation_slices
+from tridar_env.env import make_target, observation_slices
 
 _S = observation_slices()
 FloatArray = npt.NDArray[np.float64]
@@ -88,6 +88,13 @@ def dock_frame_in_lvlh(cfg: MissionConfig) -> FloatArray | None:
         "xyz", cfg.dynamics.target_attitude.initial_rpy_deg, degrees=True
     ).as_matrix()
     return R_lt @ target.T_target_port[:3, :3] @ R_PORT_DOCK
+
+
+def port_lever_dock(cfg: MissionConfig) -> FloatArray:
+    """(3,) the port from the target's centre of mass [m], in the docking frame of a chaser
+    aligned with the port (``R_PORT_DOCK``): the target's design data."""
+    T_tp = make_target(cfg).T_target_port
+    return R_PORT_DOCK.T @ T_tp[:3, :3].T @ T_tp[:3, 3]
 
 
 def docking_frame_model(

@@ -1,0 +1,317 @@
+"""Collision avoidance on a lost or degraded track: dead reckoning, hold and retreat.
+
+Shared by the scripted controllers (:mod:`agents.glideslope`, :mod:`agents.lqr`,
+:mod:`agents.sync`). DESIGN.md, "Integrity": a controller never flies on a pose that is not valid;
+close in it holds or retreats. It reads only the observation.
+
+**Dead reckoning.** While the pose is *healthy* (position and velocity valid, not degraded) the
+monitor keeps the last trusted position and velocity of a reference point of the target (the port
+for the final-approach controllers, the target's centre of mass for sync), relative to the chaser's
+centre of mass, in the chaser's body frame at that fix, treated as inertial for the length of a
+hold. Between fixes it propagates them open loop with what the chaser itself did: the
+acceleration of the action it returned (normalised thrust x ``max_thrust / mass``, the mass from
+``fuel_fraction``), and its own rotation from the gyro. The point's own acceleration is left out:
+the target's centre of mass falls freely with the chaser up to CW terms (``2 n v``, ~1e-4 m/s^2 at
+5 cm/s), and a port held in LVLH turns about it at ``n`` (centripetal ``n^2 r`` ~1e-5 m/s^2 at
+10 m). In the body frame, which turns at the gyro's rate ``w``, the point ``x`` then moves as
+``x'' = -a - 2 w x x' - w x (w x x)`` (``x'`` its body-frame rate, the observation's convention).
+
+A *degraded* pose (protection level above the alert limit) still measures the distance along the
+docking axis well (a flat face seen head-on leaves the in-plane directions loose, not the depth):
+its axial position and rate replace the dead-reckoned ones; the lateral ones stay dead-reckoned.
+
+**Rule.** Each step :meth:`CollisionAvoidance.update` says one of:
+
+``nominal``
+    healthy pose (and, after an avoidance, healthy for ``resume_s``): the controller flies its law.
+``blind``
+    no trusted pose yet this episode (acquisition): nothing to dead-reckon from; the controller's
+    own loss-of-pose rule applies (brake a closing range rate along the line of sight, else coast).
+``commit``
+    the pose was lost (invalid, not degraded) while the last healthy state was inside
+    ``commit_range_m`` of the port, within ``commit_lateral_m`` of the axis, closing inside the
+    capture envelope's axial speed window and with a lateral speed under ``commit_lateral_speed``:
+    braking there would turn a docking into a too-slow contact, so the chaser coasts into contact
+    (in its own rotating frame: the centripetal and Coriolis terms of its rate are served, which is
+    zero thrust for a chaser that does not turn). The decision is latched until contact or a
+    healthy pose.
+``avoid``
+    otherwise (invalid or degraded, with a fix): brake the closing speed to zero and hold, or
+    retreat along the approach axis to the hold point, never closing in. Along the axis the
+    desired opening rate is ``clip(k_hold (s_hold - s), 0, v_retreat)`` (``s`` the distance along
+    the axis: dock to port along the docking axis for glideslope/LQR; centre of mass to centre of
+    mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed
+    loop ``kv`` tracks it, plus the rotating-frame terms. ``s_hold`` is the controller's hold
+    distance plus the protection level of a degraded pose. A degraded pose inside the commit range,
+    or a lost one off axis or too fast, aborts: it backs away too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from tridar_env.env import observation_slices
+
+_S = observation_slices()
+FloatArray = npt.NDArray[np.float64]
+
+#: ``valid`` flags (observation order).
+_POS, _VEL, _DEGRADED = 3, 4, 7
+
+Mode = Literal["nominal", "blind", "commit", "avoid"]
+
+
+@dataclass
+class SafetyGains:
+    """Tunables of :class:`CollisionAvoidance` (SI units)."""
+
+    hold_range_m: float = 5.0  # [m] hold distance along the approach axis (see ``axis``)
+    v_retreat: float = 0.05  # [m/s] opening speed of a retreat to the hold point
+    k_hold: float = 0.05  # [1/s] opening speed = k_hold * (hold - distance), up to v_retreat
+    kv: float = 0.4  # [1/s] speed loop
+    commit_range_m: float = 0.4  # [m] a healthy pose lost closer than this may coast into contact
+    commit_lateral_m: float = 0.05  # [m] ... when the dock is this close to the port axis
+    commit_lateral_speed: float = 0.02  # [m/s] ... drifting across it no faster than this
+    resume_s: float = 1.0  # [s] of healthy poses before an approach resumes after an avoidance
+
+
+def _rot(rotvec: FloatArray) -> FloatArray:
+    """Rotation matrix of a rotation vector [rad] (Rodrigues)."""
+    th = float(np.linalg.norm(rotvec))
+    if th < 1e-12:
+        return np.eye(3)
+    k = rotvec / th
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * (K @ K)
+
+
+class DeadReckoning:
+    """A target point's position and rate relative to the chaser's centre of mass, propagated
+    open loop between fixes (module docstring).
+
+    Two models. Without ``model``: free fall in the inertial frame, the body's rotation from the
+    gyro; internally the position ``X`` and inertial velocity ``V`` in the body frame of the last
+    fix and ``R`` the body's attitude in that frame. With ``model = (A (6, 6), B (6, 3))``, the
+    discrete relative dynamics of the chaser ``[r, v] = -[x, x']`` in a body frame that is constant
+    in LVLH (the CW model of :func:`agents.lqr.docking_frame_model`): minutes of hold then do not
+    drift by the Coriolis and tidal terms (2 n v, 3 n^2 x), which free fall would leave out.
+
+    The CW terms act on the chaser's position from the target's centre of mass, so the model
+    needs where the point sits from it: ``lever``, body frame (constant with the frame).
+
+    Args:
+        model: the discrete ``(A, B)`` over the controller step, or ``None``.
+        lever: (3,) the point from the target's centre of mass, body frame [m] (with ``model``).
+    """
+
+    def __init__(
+        self, model: tuple[FloatArray, FloatArray] | None = None, lever: npt.ArrayLike = (0.0, 0.0, 0.0)
+    ) -> None:
+        self.model = model
+        self._c = np.concatenate([np.asarray(lever, dtype=np.float64).reshape(3), np.zeros(3)])
+        self.X = np.zeros(3)
+        self.V = np.zeros(3)
+        self.R = np.eye(3)
+
+    def fix(self, x: FloatArray, x_dot: FloatArray, w: FloatArray) -> None:
+        """Set from a body-frame position ``x`` [m], its body-frame rate ``x_dot`` [m/s] and the
+        gyro ``w`` [rad/s]; the current body frame becomes the reference."""
+        self.R = np.eye(3)
+        self.reset_to(x, x_dot, w)
+
+    def reset_to(self, x: FloatArray, x_dot: FloatArray, w: FloatArray) -> None:
+        """Overwrite the state with body-frame values, keeping the reference frame."""
+        x = np.asarray(x, dtype=np.float64)
+        x_dot = np.asarray(x_dot, dtype=np.float64)
+        if self.model is not None:
+            self.X, self.V = x.copy(), x_dot.copy()
+            return
+        self.X = self.R @ x
+        self.V = self.R @ (x_dot + np.cross(w, x))
+
+    def predict(self, a_body: FloatArray, w: FloatArray, dt: float) -> None:
+        """Advance ``dt`` [s] (the model's step when there is one) under the chaser's body
+        acceleration ``a_body`` [m/s^2] and rate ``w`` [rad/s], both held over the step."""
+        a_body = np.asarray(a_body, dtype=np.float64)
+        if self.model is not None:
+            A, B = self.model
+            # chaser from the target's centre of mass = -x + lever
+            s = A @ (self._c - np.concatenate([self.X, self.V])) + B @ a_body - self._c
+            self.X, self.V = -s[:3], -s[3:]
+            return
+        a = self.R @ a_body
+        self.X = self.X + self.V * dt - 0.5 * a * dt * dt
+        self.V = self.V - a * dt
+        self.R = self.R @ _rot(np.asarray(w, dtype=np.float64) * dt)
+
+    def state(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Body-frame position [m] and its body-frame rate [m/s] at gyro rate ``w``."""
+        if self.model is not None:
+            return self.X.copy(), self.V.copy()
+        x = self.R.T @ self.X
+        return x, self.R.T @ self.V - np.cross(w, x)
+
+
+class CollisionAvoidance:
+    """Integrity monitor and collision-avoidance law (see the module docstring).
+
+    Args:
+        dt: controller step [s].
+        dock: (3,) dock origin in the chaser body frame [m] (the docking frame's origin; its axes
+            are the body axes).
+        envelope: ``(min, max)`` closing speed at contact [m/s] (the capture envelope).
+        gains: tunables.
+        axis: ``"dock"``: hold and retreat along the docking axis, distances dock-to-port;
+            ``"radial"``: along the line to the reference point, distances centre to centre.
+        model: discrete relative dynamics ``(A, B)`` in a body frame constant in LVLH (see
+            :class:`DeadReckoning`); ``None``: free fall and the gyro.
+        lever: (3,) the reference point from the target's centre of mass in that frame [m]
+            (with ``model``).
+
+    Usage per step: ``mode = ca.update(obs, x, x_dot, port_offset)`` with the controller's
+    reference point measured in this observation (ignored unless the pose is valid), then
+    ``ca.accel(obs)`` when the mode is ``avoid`` or ``commit``, and always ``ca.applied(a)`` with
+    the body acceleration the returned action commands.
+    """
+
+    def __init__(
+        self,
+        dt: float,
+        dock: npt.ArrayLike,
+        envelope: tuple[float, float],
+        gains: SafetyGains | None = None,
+        axis: Literal["dock", "radial"] = "dock",
+        model: tuple[FloatArray, FloatArray] | None = None,
+        lever: npt.ArrayLike = (0.0, 0.0, 0.0),
+    ) -> None:
+        self.dt = float(dt)
+        self.d = np.asarray(dock, dtype=np.float64).reshape(3)
+        self.envelope = (float(envelope[0]), float(envelope[1]))
+        self.g = gains or SafetyGains()
+        self.axis = axis
+        self.model = model
+        self.lever = np.asarray(lever, dtype=np.float64).reshape(3)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the episode: no fix, nominal."""
+        self.dr = DeadReckoning(self.model, self.lever)
+        self.has_fix = False
+        self.mode: Mode = "nominal"
+        self._avoided = False  # an avoidance since the last resume
+        self._healthy = 0  # consecutive healthy steps
+        self._port_offset = np.zeros(3)  # port from the reference point, body frame [m]
+        self._a_prev = np.zeros(3)
+        self._w_prev = np.zeros(3)
+        self._pl = 0.0  # protection level of the latest degraded pose [m]
+
+    # ------------------------------------------------------------------ state
+    def port(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Dead-reckoned port position in the docking frame [m] and its rate [m/s]."""
+        x, x_dot = self.dr.state(w)
+        return x + self._port_offset - self.d, x_dot
+
+    def update(
+        self,
+        obs: npt.NDArray[np.floating],
+        x: FloatArray | None,
+        x_dot: FloatArray | None,
+        port_offset: FloatArray | None = None,
+    ) -> Mode:
+        """Propagate, take this observation's fix (healthy) or axial update (degraded), decide.
+
+        Args:
+            obs: the observation.
+            x: the reference point from the chaser's centre of mass, body frame [m], as this
+                observation measures it (``None`` when the position is not valid).
+            x_dot: its body-frame rate [m/s] (``None`` when the velocity is not valid).
+            port_offset: port minus reference point, body frame [m] (default zero: the reference
+                point is the port).
+        """
+        valid = obs[_S["valid"]]
+        w = obs[_S["chaser_rate_body"]].astype(np.float64)
+        if self.has_fix:
+            self.dr.predict(self._a_prev, self._w_prev, self.dt)
+        self._w_prev = w
+        pose = x is not None and x_dot is not None and valid[_POS] > 0.5 and valid[_VEL] > 0.5
+        degraded = valid[_DEGRADED] > 0.5 and x is not None and valid[_POS] > 0.5
+        if pose and not degraded:
+            assert x is not None and x_dot is not None
+            self.dr.fix(x, x_dot, w)
+            self.has_fix = True
+            self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
+            self._healthy += 1
+            if self._avoided and self._healthy * self.dt < self.g.resume_s - 1e-9:
+                self.mode = "avoid"  # hold on fresh fixes until the track has proved itself
+            else:
+                self.mode = "nominal"
+                self._avoided = False
+            self._pl = 0.0
+            return self.mode
+        self._healthy = 0
+        if not self.has_fix:
+            self.mode = "blind"
+            return self.mode
+        if degraded:
+            assert x is not None
+            # the degraded estimate's distance along the docking axis replaces the dead-reckoned one
+            xr, xr_dot = self.dr.state(w)
+            xr[2] = x[2]
+            if x_dot is not None and valid[_VEL] > 0.5:
+                xr_dot[2] = x_dot[2]
+            self.dr.reset_to(xr, xr_dot, w)
+            self._pl = float(obs[_S["protection_level"]][0])
+        if not degraded and (self.mode == "commit" or (self.mode == "nominal" and self._committable(w))):
+            self.mode = "commit"
+        else:
+            self.mode = "avoid"
+            self._avoided = True
+        return self.mode
+
+    def _committable(self, w: FloatArray) -> bool:
+        """The last healthy state (one step on) may coast into contact (module docstring)."""
+        g = self.g
+        p, p_dot = self.port(w)
+        closing = -float(p_dot[2])
+        return bool(
+            0.0 < p[2] <= g.commit_range_m
+            and float(np.hypot(p[0], p[1])) <= g.commit_lateral_m
+            and self.envelope[0] <= closing <= self.envelope[1]
+            and float(np.hypot(p_dot[0], p_dot[1])) <= g.commit_lateral_speed
+        )
+
+    # ------------------------------------------------------------------ law
+    def accel(self, obs: npt.NDArray[np.floating], hold_m: float | None = None) -> FloatArray:
+        """Body acceleration [m/s^2] of the current ``avoid`` or ``commit`` mode (before the
+        thrust limit, which should scale the vector as a whole).
+
+        Args:
+            obs: the observation (for the gyro).
+            hold_m: hold distance along the axis [m] (default ``hold_range_m``).
+        """
+        w = obs[_S["chaser_rate_body"]].astype(np.float64)
+        x, x_dot = self.dr.state(w)
+        # the rotating body frame's Coriolis and centripetal terms (a frame constant in LVLH turns
+        # at n: its CW terms are left to the speed loop)
+        frame = np.zeros(3) if self.model is not None else (
+            -2.0 * np.cross(w, x_dot) - np.cross(w, np.cross(w, x)))
+        if self.mode == "commit":
+            return frame
+        g = self.g
+        hold = (g.hold_range_m if hold_m is None else hold_m) + self._pl
+        if self.axis == "dock":
+            u = np.array([0.0, 0.0, 1.0])
+            s = float((x + self._port_offset - self.d)[2])
+        else:
+            s = float(np.linalg.norm(x))
+            u = x / max(s, 1e-9)
+        v_open = float(np.clip(g.k_hold * (hold - s), 0.0, g.v_retreat))
+        return g.kv * (x_dot - v_open * u) + frame
+
+    def applied(self, a_body: FloatArray) -> None:
+        """Record the body acceleration [m/s^2] the returned action commands (after limits)."""
+        self._a_prev = np.asarray(a_body, dtype=np.float64).copy()

@@ -26,14 +26,22 @@ envelope's 0.05-0.10 m/s). It pauses (a hold point) while the chaser lags it by 
 ``max_lag_m`` or sits outside the lateral cone, except inside ``commit_range_m`` where a stop would
 turn contact into a collision.
 
-Loss of pose (bearing mode, search, loss of track): **never act on a stale pose.** Brake a closing
-range rate along the line of sight (bearing) when both are valid, else coast with zero thrust; on
-reacquisition the aim point restarts from the new estimate.
+Integrity (:mod:`agents.safety`, DESIGN.md "Integrity"): the law flies only a *healthy* pose
+(position and velocity valid, not degraded). From the last healthy pose the controller
+dead-reckons the port with its own saturated commands (through ``A``, ``B`` when the docking frame
+is constant, else in free fall with the gyro); on an invalid or degraded pose it brakes the closing
+speed to zero and holds, or inside ``safety.hold_range_m`` (5 m) retreats along the docking axis
+to that hold point at ``safety.v_retreat``, never closing in; only a healthy pose lost in the last
+``safety.commit_range_m`` (0.4 m), on the axis and inside the envelope's closing speeds, coasts
+into contact (a degraded one there backs away). The approach resumes after ``safety.resume_s`` of
+healthy poses, the aim point restarting from the new estimate. Before the first healthy pose of
+an episode there is nothing to dead-reckon: a closing range rate is braked along the line of sight
+(bearing) when both are valid, else the chaser coasts (:func:`loss_of_track_accel`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +49,7 @@ import numpy.typing as npt
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
+from agents.safety import CollisionAvoidance, SafetyGains
 from perception.config import MissionConfig
 from perception.targets import load_target
 from tridar_env.dynamics import cw_stm, mean_motion
@@ -67,7 +76,8 @@ class LQRGains:
     max_lag_m: float = 1.0  # [m] hold the aim while the chaser lags it by more
     lateral_cone: float = 0.15  # hold the aim while |lateral| > cone * z + 0.05
     commit_range_m: float = 1.0  # [m] no hold inside this distance (a stop there is a collision)
-    brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate
+    brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate (no fix yet)
+    safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
 
 
 def dock_frame_in_lvlh(cfg: MissionConfig) -> FloatArray | None:
@@ -179,11 +189,18 @@ class LQRController:
         P = scipy.linalg.solve_discrete_are(self.A, self.B, Q, Rw)
         self.K = np.linalg.solve(Rw + self.B.T @ P @ self.B, self.B.T @ P @ self.A)
         self._B_pinv = np.linalg.pinv(self.B)
+        env = cfg.env.envelope
+        self.safety = CollisionAvoidance(
+            self.dt, ch.dock_position_m, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), g.safety,
+            model=(self.A, self.B) if self.R is not None else None,
+            lever=port_lever_dock(cfg) if self.R is not None else (0.0, 0.0, 0.0),
+        )
         self.reset()
 
     def reset(self) -> None:
-        """Forget the aim point."""
+        """Forget the aim point, the dead-reckoned port and the avoidance state."""
         self.z_aim = float("nan")
+        self.safety.reset()
 
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
@@ -201,11 +218,15 @@ class LQRController:
         """Desired chaser acceleration in the docking frame [m/s^2] (before saturation)."""
         g = self.g
         valid = obs[_S["valid"]]
-        if not (valid[3] > 0.5 and valid[4] > 0.5):
-            self.z_aim = float("nan")  # restart the aim from the next valid pose
-            return loss_of_track_accel(obs, g.brake_gain)
         p = obs[_S["port_position_dock"]].astype(np.float64)
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
+        d = self.safety.d
+        mode = self.safety.update(obs, p + d if valid[3] > 0.5 else None, p_dot if valid[4] > 0.5 else None)
+        if mode != "nominal":
+            self.z_aim = float("nan")  # restart the aim from the next healthy pose
+            if mode == "blind":
+                return loss_of_track_accel(obs, g.brake_gain)
+            return self.safety.accel(obs)
         x = -np.concatenate([p, p_dot])
         z = float(p[2])  # distance to the port along the docking axis
         if not np.isfinite(self.z_aim):
@@ -232,7 +253,10 @@ class LQRController:
         if self.thrust_frame == "lvlh":
             assert self.R is not None
             a = self.R @ a
-        thrust = saturate(a * self._mass(obs) / self.max_thrust)
+        mass = self._mass(obs)
+        thrust = saturate(a * mass / self.max_thrust)
+        applied = thrust * self.max_thrust / mass
+        self.safety.applied(self.R.T @ applied if self.thrust_frame == "lvlh" and self.R is not None else applied)
         if self.six_dof:
             thrust = np.concatenate([thrust, np.zeros(3)])  # no attitude control: use sync
         return thrust.astype(np.float32)

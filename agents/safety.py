@@ -79,7 +79,7 @@ class SafetyGains:
     resume_s: float = 1.0  # [s] of healthy poses before an approach resumes after an avoidance
 
 
-def _rot(rotvec: FloatArray) -> FloatArray:
+def rotvec_matrix(rotvec: FloatArray) -> FloatArray:
     """Rotation matrix of a rotation vector [rad] (Rodrigues)."""
     th = float(np.linalg.norm(rotvec))
     if th < 1e-12:
@@ -146,7 +146,7 @@ class DeadReckoning:
         a = self.R @ a_body
         self.X = self.X + self.V * dt - 0.5 * a * dt * dt
         self.V = self.V - a * dt
-        self.R = self.R @ _rot(np.asarray(w, dtype=np.float64) * dt)
+        self.R = self.R @ rotvec_matrix(np.asarray(w, dtype=np.float64) * dt)
 
     def state(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Body-frame position [m] and its body-frame rate [m/s] at gyro rate ``w``."""

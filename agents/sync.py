@@ -56,28 +56,36 @@ Phases (:attr:`SyncController.phase`):
     envelope); it freezes (hold point) while any of them leaves a looser band, and the dwell
     restarts.
 ``safe``
-    **Loss of pose (bearing mode, search, loss of track): never correct toward a stale pose.**
-    Torque is zero, so the chaser keeps the inertial rate it had (the synchronised spin is the
-    best open-loop continuation and keeps the target near the boresight). A chaser that was
-    synchronised (``sync``/``close``) keeps turning about the target's centre of mass for up to
-    ``hold_after_loss_s``: its thrust is the centripetal acceleration ``-w x (w x r_com)`` of the
-    last geometry in which it was matched (every error within ``loose`` times its threshold; a
-    chaser still swinging into line would be pulled inward by its own rate) at the gyro's rate.
-    Released, it would fly off along the tangent at ``|w| |r_com|``, ~0.3 m/s at 5 deg/s, and
-    take the target out of the field of view. Outside that window thrust brakes a closing range
-    rate along the line of sight (bearing) when both are valid, else the chaser coasts. On
-    reacquisition the controller re-enters ``approach`` or ``sync`` by range and must dwell
-    again before closing.
+    **Lost or degraded pose: never correct toward a stale pose, never coast into the target**
+    (:mod:`agents.safety`, DESIGN.md "Integrity"). From the last healthy pose (all four pose
+    blocks valid, not degraded) the controller dead-reckons the target's centre of mass (the port
+    minus its lever, design data) from its own centre of mass, in free fall, with its own
+    saturated thrust and the gyro's rotation. Torque is zero, so the chaser keeps the inertial
+    rate it had (the synchronised spin is the best open-loop continuation and keeps the target
+    near the boresight), and its thrust holds the dead-reckoned centre of mass fixed in the
+    turning body frame (the centripetal ``-w x (w x x)`` and Coriolis ``-2 w x x'`` terms of that
+    rate plus a speed loop): a synchronised chaser keeps turning about the target with it, on the
+    circle it was on. Along the line to the centre of mass it never closes in, and inside the hold
+    distance (the ``standoff_m`` hold point's, at least the keep-out sphere) it backs away at
+    ``safety.v_retreat``. A degraded pose's depth along the docking axis corrects the dead
+    reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
+    envelope's closing speed coasts into contact in the turning frame (a degraded one there
+    backs away). Before any healthy pose (acquisition) a closing range rate is braked along the
+    line of sight (bearing) when both are valid, else the chaser coasts. On a healthy pose again
+    (for ``safety.resume_s``) the controller re-enters ``approach`` or ``sync`` by range and must
+    dwell again before closing.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 from agents.lqr import loss_of_track_accel, saturate
+from agents.safety import CollisionAvoidance, SafetyGains
+from agents.safety import rotvec_matrix
 from perception.config import MissionConfig
 from perception.geometry import quat_to_matrix
 from tridar_env.env import make_target, observation_slices
@@ -128,8 +136,8 @@ class SyncGains:
     hold_rate_ok_m_s: float = 0.015
     dwell_s: float = 5.0
     loose: float = 2.0  # closing freezes when an error exceeds loose * its threshold
-    brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate
-    hold_after_loss_s: float = 20.0  # [s] a synchronised chaser keeps its circle this long
+    brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate (no fix yet)
+    safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
     # keep-out sphere about the target's centre of mass (target radius + hull + margin), left
     # only inside the approach cone about the port axis
     keep_out_margin_m: float = 0.3
@@ -176,6 +184,16 @@ class SyncController:
         self.keep_out_m = target.radius + ch.hull_radius_m + self.g.keep_out_margin_m
         self.hull = ch.hull_radius_m
         self._cone_tan = float(np.tan(np.radians(self.g.approach_cone_deg)))
+        # hold distance between the centres of mass: the standoff hold point's, outside keep-out
+        self.hold_com_m = max(
+            float(np.linalg.norm(self.port_lever + (self.g.standoff_m + self.d[2]) * np.array([0.0, 0.0, 1.0]))),
+            self.keep_out_m,
+        )
+        env = cfg.env.envelope
+        self.safety = CollisionAvoidance(
+            self.dt, self.d, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
+            axis="radial",
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -187,9 +205,10 @@ class SyncController:
         self._metrics: FloatArray | None = None  # low-passed (e, w_rel, h_perp, h_dot_perp)
         self._w_rel_f: FloatArray | None = None  # filtered relative rate (sync and close)
         self._alpha_applied = np.zeros(3)  # chaser angular acceleration of the last action
-        self._r_com: FloatArray | None = None  # target CoM from the chaser's, last synced frame
         self._match = np.inf  # worst low-passed matching error / its threshold
-        self._held = 0  # steps spent continuing the synchronised circle after a loss of pose
+        # target attitude in the last fix's body frame and its body rate (sync/close phases)
+        self._target: tuple[FloatArray, FloatArray] | None = None
+        self.safety.reset()
 
     # ------------------------------------------------------------------ helpers
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
@@ -228,25 +247,31 @@ class SyncController:
         g = self.g
         valid = obs[_S["valid"]]
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
-        if not (valid[3] > 0.5 and valid[4] > 0.5 and valid[5] > 0.5 and valid[6] > 0.5):
+        p = obs[_S["port_position_dock"]].astype(np.float64)
+        p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
+        R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64)) if valid[5] > 0.5 else np.eye(3)
+        w_rel = obs[_S["omega_port_dock"]].astype(np.float64)
+        # the safety monitor's reference point: the target's centre of mass from the chaser's
+        x = x_dot = lever = None
+        if valid[3] > 0.5 and valid[5] > 0.5:
+            lever = R_dp @ self.port_lever
+            x = p + self.d - lever
+            if valid[4] > 0.5 and valid[6] > 0.5:
+                x_dot = p_dot - np.cross(w_rel, lever)
+        mode = self.safety.update(obs, x, x_dot, lever)
+        if mode != "nominal":
             self.phase = "safe"
             self.dwell = 0.0
             self._metrics = None
             self._match = np.inf
             self._w_rel_f = None
-            if self._r_com is not None and self._held * self.dt < g.hold_after_loss_s - 1e-9:
-                # keep turning about the target's centre of mass as the synchronised chaser was
-                self._held += 1
-                # (the thrust limit scales it down in __call__, keeping its direction)
-                return -np.cross(w, np.cross(w, self._r_com)), np.zeros(3)
-            self._r_com = None
-            return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
-        self._held = 0
+            if mode == "blind":
+                return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
+            alpha = self._committed_alpha() if mode == "commit" else np.zeros(3)
+            if mode != "commit":
+                self._target = None
+            return self.safety.accel(obs, self.hold_com_m), alpha
 
-        p = obs[_S["port_position_dock"]].astype(np.float64)
-        p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
-        R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64))
-        w_rel = obs[_S["omega_port_dock"]].astype(np.float64)
         alpha_t = self._port_alpha(w + w_rel, R_dp)
         dist = float(np.linalg.norm(p))
 
@@ -259,13 +284,16 @@ class SyncController:
             self.s = g.standoff_m
             self.s_dot = 0.0
 
+        self._target = None
         if self.phase == "approach":
             self._w_rel_f = None
-            self._r_com = None
             return self._approach(p, p_dot, w, w_rel, dist)
 
         w_rel = self._filter_rate(w, w_rel, alpha_t)
         alpha_t = self._port_alpha(w + w_rel, R_dp)
+        # the target's attitude and body rate at this fix, for a committed coast into contact
+        R_dt = R_dp @ self.R_port_target
+        self._target = (R_dt, R_dt.T @ (w + w_rel))
         # ---- attitude: match the port (rate-limited PD + feed-forward of its acceleration) once
         # in the approach corridor; outside it the port's attitude would turn the sensor off the
         # target (a port facing away is matched by looking away), so keep pointing at the port
@@ -290,7 +318,6 @@ class SyncController:
             self.dwell = 0.0
             self._metrics = None
             self._match = np.inf
-            self._r_com = None
             return self._approach(p, p_dot, w, w_rel, dist)
         p_dot_t = p_dot - np.cross(w_rel, p)  # the port's velocity seen from the target's frame
         h = p + self.s * u
@@ -317,10 +344,21 @@ class SyncController:
         v_max = self._speed_budget(w_t, r_com, a_lim)
         h_dot_des = -self._keep_out(_sat(g.lam * h, v_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
-        # the geometry to keep after a loss of pose, only while matched: a chaser still swinging
-        # into line turns at up to w_max, and that rate's centripetal would pull it inward
-        self._r_com = -r_com if self._match <= g.loose else None
         return _allocate(a_ff, a_fb, a_lim), alpha
+
+    def _committed_alpha(self) -> FloatArray:
+        """Body angular acceleration [rad/s^2] that keeps a committed chaser turning with the
+        target: the target's torque-free motion (Euler's equations) propagated open loop from the
+        last fix, in the body frame the safety monitor propagates with the gyro."""
+        if self._target is None:
+            return np.zeros(3)
+        R_0t, wb = self._target
+        I = self.target_inertia
+        wb_dot = np.linalg.solve(I, -np.cross(wb, I @ wb))
+        R_0t = R_0t @ rotvec_matrix(wb * self.dt)
+        wb = wb + wb_dot * self.dt
+        self._target = (R_0t, wb)
+        return self.safety.dr.R.T @ R_0t @ np.linalg.solve(I, -np.cross(wb, I @ wb))
 
     def _speed_budget(self, w_t: FloatArray, r_com: FloatArray, a_lim: float) -> float:
         """Fastest transfer speed through the target's frame [m/s] that the thrust budget allows
@@ -421,12 +459,14 @@ class SyncController:
 
     def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
         a, alpha = self.command(obs)
-        thrust = a * self._mass(obs) / self.max_thrust
+        mass = self._mass(obs)
+        thrust = a * mass / self.max_thrust
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         # isotropic chaser inertia: w x (I w) vanishes, kept for clarity of the model
         torque = self.inertia * alpha + np.cross(w, self.inertia * w)
         out = np.concatenate([saturate(thrust), saturate(torque / self.max_torque)])
         self._alpha_applied = out[3:] * self.max_torque / self.inertia
+        self.safety.applied(out[:3] * self.max_thrust / mass)
         return out.astype(np.float32)
 
 

@@ -186,9 +186,9 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
         region = target.regions.get(default) or target.regions["whole"]
         base = predict_information(target, sensor, model, T, region, 0, pc.scan_plan.rays,
                                    pc.scan_plan, pc.icp.noise_floor_fraction)
-        planner.reset()
-        _, best = planner.choose(T, default, 0, 0.0)
-        used = best if planned else base
+        best = _planner_choice(planner, T, default, base)
+        # The pipeline's planner steps in where the strategy's region leaves axes unobserved.
+        used = best if planned and base.degenerate_axes else base
         rows.append(MapRow(
             range_m=float(r), region=used.region.name, port_bound_m=used.port_bound_m,
             attitude_bound_deg=math.degrees(used.attitude_bound_rad), weak_axes=list(used.degenerate_axes),
@@ -199,6 +199,16 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
             planner_weak_axes=list(best.degenerate_axes),
         ))
     return rows, ("observability" if planned else "range")
+
+
+def _planner_choice(planner: Any, T: Any, default_name: str, base: Any) -> Any:
+    """The prediction of the region the planner picks at ``T`` when asked to plan."""
+    planner.reset()
+    try:  # the planner plans when the last registration was weak
+        _, pred = planner.choose(T, default_name, 0, 0.0, weak=True)
+    except TypeError:  # a planner that plans on every call
+        _, pred = planner.choose(T, default_name, 0, 0.0)
+    return pred if pred is not None else base
 
 
 def _mm(x: float) -> str:

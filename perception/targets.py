@@ -18,7 +18,12 @@ hubble      13.45 x 19.30 x 8.25    Hubble-like 13.2 m x 4.3 m cylinder, two arr
 
 Every library target carries off-centre features (antennas, boom, port, door, star tracker), so its
 pose from a full view is unique; ``target.symmetries`` lists any rotation that maps the mesh onto
-itself (empty for the whole library).
+itself (empty for the whole library; :func:`find_symmetries` finds none there either).
+
+A mesh file is validated on load (see :func:`load_target`): finite vertices, a plausible size in
+metres, a docking port on the surface facing out (or a loud warning where one was put), a simplified
+model-side mesh when it is dense, and its symmetries found automatically. Procedurally generated
+test spacecraft live in :mod:`perception.shapes`.
 """
 
 from __future__ import annotations

@@ -877,7 +877,7 @@ def load_target(
     if port is None:
         port_T = _default_port(path, mesh, com)
     else:
-        port_T = _explicit_port(path, mesh, port, com, float(port_tolerance_m))
+        port_T = _explicit_port(path, mesh, port, com, float(port_tolerance_m), closed)
     simplified, deviation = None, 0.0
     if len(mesh.faces) > int(max_model_faces):
         simplified, deviation = _simplify(path, mesh, int(max_model_faces))
@@ -1003,21 +1003,25 @@ def _first_hit(mesh: trimesh.Trimesh, origin: FloatArray, direction: FloatArray)
     return float(t[k]), int(tri[k])
 
 
-def _outward_normal(mesh: trimesh.Trimesh, q: FloatArray, faces: npt.NDArray[np.int64]) -> FloatArray:
+def _outward_normal(
+    mesh: trimesh.Trimesh, q: FloatArray, faces: npt.NDArray[np.int64], closed: bool
+) -> FloatArray:
     """Outward unit normal of the surface at ``q`` (mean of the tied faces' normals).
 
-    Winding is trusted on a watertight mesh (made positive-volume on load); on an open mesh the
-    side from which a ray escapes without crossing the mesh again is taken as outside.
+    Winding is trusted on a ``closed`` (watertight) mesh, made positive-volume on load. On an open
+    mesh the side from which a ray escapes without crossing the mesh again is taken as outside;
+    when both or neither side escapes (a hole across from the port), the side facing away from the
+    centre of mass (the body origin).
     """
     n = np.asarray(mesh.face_normals[faces], dtype=np.float64).sum(axis=0)
     if not np.linalg.norm(n) > 1e-9:
         n = np.asarray(mesh.face_normals[faces[0]], dtype=np.float64)
     n = n / np.linalg.norm(n)
-    if not mesh.is_watertight:
+    if not closed:
         size = float(np.max(mesh.extents))
         out_fwd = math.isinf(_first_hit(mesh, q + 1e-3 * size * n, n)[0])
         out_back = math.isinf(_first_hit(mesh, q - 1e-3 * size * n, -n)[0])
-        if out_back and not out_fwd:
+        if (out_back and not out_fwd) or (out_back == out_fwd and float(n @ q) < 0.0):
             n = -n
     return n
 
@@ -1065,6 +1069,7 @@ def _explicit_port(
     port: tuple[npt.ArrayLike, npt.ArrayLike],
     com: FloatArray,
     tol_m: float,
+    closed: bool,
 ) -> FloatArray:
     """``T_target_port`` of a user's port, refused when off the surface or facing into the hull."""
     try:
@@ -1089,7 +1094,7 @@ def _explicit_port(
             f"target mesh file {path}: port {_fmt(pos)} m is {dist:.3f} m from the surface (nearest"
             f" surface point {_fmt(q + com)} m); expected within port_tolerance_m={tol_m:g} m"
         )
-    n = _outward_normal(mesh, q, faces)
+    n = _outward_normal(mesh, q, faces, closed)
     angle = float(np.degrees(np.arccos(np.clip(axis @ n, -1.0, 1.0))))
     if angle > 90.0:
         raise ValueError(

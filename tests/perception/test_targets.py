@@ -221,6 +221,23 @@ def test_port_axis_into_the_hull_refused_naming_the_angle(flat_face_file) -> Non
     _one_line_refusal(path, "port position .* must be finite", port=([np.inf, 0, 0], axis))
 
 
+@pytest.mark.parametrize("inverted", [False, True])
+def test_port_on_an_open_mesh_judged_by_rays(tmp_path: Path, inverted: bool) -> None:
+    # A box without its bottom: winding cannot say which side is out, escaping rays (or, through
+    # the hole, the side away from the centre) do, whichever way the file's faces are wound.
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    box.update_faces(box.face_normals[:, 2] > -0.5)
+    box.remove_unreferenced_vertices()
+    if inverted:
+        box.invert()
+    path = tmp_path / "open.stl"
+    box.export(path)
+    t = load_target(path, port=((0.2, 0.1, 0.5), (0.0, 0.0, 1.0)))
+    assert not t.mesh.is_watertight
+    _one_line_refusal(path, "points into the hull, 180 deg", port=((0.2, 0.1, 0.5), (0, 0, -1.0)))
+    _one_line_refusal(path, "points into the hull, 180 deg", port=((0.5, 0.1, 0.2), (-1.0, 0, 0)))
+
+
 def test_port_whose_approach_crosses_the_target_refused(tmp_path: Path) -> None:
     # A port on the bus's +x face looking along +x, with a plate standing 0.5 m in front of it.
     parts = [trimesh.creation.box(extents=(1, 1, 1)),

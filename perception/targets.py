@@ -1133,17 +1133,47 @@ def _has_quadric_decimation() -> bool:
 
 
 def _cluster_vertices(mesh: trimesh.Trimesh, cell_m: float) -> trimesh.Trimesh:
-    """Vertex clustering on a voxel grid of ``cell_m`` [m]: one vertex (the mean) per occupied
-    voxel, collapsed and duplicate faces dropped."""
+    """Vertex clustering on a voxel grid of ``cell_m`` [m], one vertex per occupied voxel;
+    collapsed and duplicate faces dropped.
+
+    Each voxel's vertex minimises the summed squared distances to the planes of the faces around
+    it (Lindstrom's out-of-core simplification): corners and edges stay sharp where the voxel's
+    mean would round them off by up to a cell. Directions the planes leave free (along an edge,
+    across a flat patch) keep the mean; a solution farther than a cell from it falls back to the
+    mean.
+    """
     v = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces)
     idx = np.floor((v - v.min(axis=0)) / cell_m).astype(np.int64)
     dims = idx.max(axis=0) + 1
     lin = np.ravel_multi_index(idx.T, tuple(int(d) for d in dims))
     _, inv = np.unique(lin, return_inverse=True)
     inv = inv.reshape(-1)
-    count = np.bincount(inv).astype(np.float64)
-    verts = np.column_stack([np.bincount(inv, weights=v[:, k]) for k in range(3)]) / count[:, None]
-    f = inv[np.asarray(mesh.faces)]
+    n_c = int(inv.max()) + 1
+    count = np.bincount(inv, minlength=n_c).astype(np.float64)
+    mean = np.column_stack([np.bincount(inv, weights=v[:, k], minlength=n_c) for k in range(3)])
+    mean /= count[:, None]
+    # Area-weighted plane quadrics of the faces, summed into the voxel of each of their corners.
+    nrm = np.asarray(mesh.face_normals, dtype=np.float64)
+    w = np.asarray(mesh.area_faces, dtype=np.float64)
+    off = np.einsum("ij,ij->i", nrm, v[faces[:, 0]])
+    corner = inv[faces].ravel()
+    A = np.empty((n_c, 3, 3))
+    b = np.empty((n_c, 3))
+    for i in range(3):
+        b[:, i] = np.bincount(corner, weights=np.repeat(w * nrm[:, i] * off, 3), minlength=n_c)
+        for j in range(i, 3):
+            A[:, i, j] = A[:, j, i] = np.bincount(
+                corner, weights=np.repeat(w * nrm[:, i] * nrm[:, j], 3), minlength=n_c
+            )
+    lam, U = np.linalg.eigh(A)
+    keep = lam > 1e-3 * np.maximum(lam[:, -1:], 1e-300)
+    r = b - np.einsum("cij,cj->ci", A, mean)
+    coef = np.where(keep, np.einsum("cji,cj->ci", U, r) / np.where(keep, lam, 1.0), 0.0)
+    step = np.einsum("cij,cj->ci", U, coef)
+    far = np.linalg.norm(step, axis=1) > cell_m
+    verts = mean + np.where(far[:, None], 0.0, step)
+    f = inv[faces]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
     return trimesh.Trimesh(vertices=verts, faces=f[np.sort(first)], process=True)

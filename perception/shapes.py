@@ -1,4 +1,4 @@
-"""Procedurally generated test spacecraft: the shapes users bring, not the ones the library was tuned on.
+"""Procedurally generated test spacecraft: shapes users bring, not those the library was tuned on.
 
 Every generated target is a concatenation of closed trimesh primitives (the library's
 :func:`perception.targets._assemble`), origin at its centre of mass, 1-6 m across, with its docking

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -421,7 +422,9 @@ def find_symmetries(
     else:
         k = 0 if close[1] else 2  # the distinct eigenvalue
         axis, e1, e2 = V[:, k], V[:, (k + 1) % 3], V[:, (k + 2) % 3]
-        orders = [n for n in range(2, max_order + 1) if passes(_axis_rotation(axis, 2 * math.pi / n))]
+        orders = [
+            n for n in range(2, max_order + 1) if passes(_axis_rotation(axis, 2 * math.pi / n))
+        ]
         order = min(math.lcm(*orders), max_order) if orders else 1
         if orders:
             gens.append(_axis_rotation(axis, 2 * math.pi / order))
@@ -864,7 +867,9 @@ def load_target(
         raise ValueError(f"target mesh file {path} has only degenerate (zero-area) triangles")
     # Spread about the least-spread direction [m]: zero for a flat or line-like mesh.
     v = np.asarray(mesh.vertices, dtype=np.float64)
-    thinnest = math.sqrt(max(float(np.linalg.eigvalsh(np.cov(v.T))[0]), 0.0)) if len(v) >= 4 else 0.0
+    thinnest = 0.0
+    if len(v) >= 4:
+        thinnest = math.sqrt(max(float(np.linalg.eigvalsh(np.cov(v.T))[0]), 0.0))
     if np.min(mesh.extents) <= 1e-9 or thinnest <= 1e-9:
         raise ValueError(f"target mesh file {path} has zero volume (flat or degenerate geometry)")
     closed = bool(mesh.is_watertight)
@@ -903,7 +908,8 @@ def load_target(
 def _fmt(v: npt.ArrayLike) -> str:
     """A (3,) vector as ``(x, y, z)``, 4 significant digits at 1e-6 resolution, for one-line
     messages."""
-    return "(" + ", ".join(f"{round(float(x), 6) + 0.0:.4g}" for x in np.asarray(v).reshape(-1)) + ")"
+    parts = (f"{round(float(x), 6) + 0.0:.4g}" for x in np.asarray(v).reshape(-1))
+    return "(" + ", ".join(parts) + ")"
 
 
 def _read_mesh(path: Path) -> trimesh.Trimesh:
@@ -950,7 +956,9 @@ def _hull_solid(vertices: FloatArray, max_points: int = 50_000) -> trimesh.Trime
     return trimesh.convex.convex_hull(v)
 
 
-def _check_extent(path: Path, mesh: trimesh.Trimesh, scale: float | None, max_extent_m: float) -> None:
+def _check_extent(
+    path: Path, mesh: trimesh.Trimesh, scale: float | None, max_extent_m: float
+) -> None:
     """Refuse an implausibly large mesh unless a scale other than 1 was given on purpose."""
     size = float(np.max(mesh.extents))
     if size <= max_extent_m or (scale is not None and scale != 1.0):
@@ -989,7 +997,9 @@ def _closest_surface_point(
     return q[best], float(d[best]), cand[d <= d[best] + 1e-6]
 
 
-def _first_hit(mesh: trimesh.Trimesh, origin: FloatArray, direction: FloatArray) -> tuple[float, int]:
+def _first_hit(
+    mesh: trimesh.Trimesh, origin: FloatArray, direction: FloatArray
+) -> tuple[float, int]:
     """Distance [m] along a unit ray to its first crossing of the mesh beyond 0.1 mm, and the face
     (inf, -1 when it escapes)."""
     loc, _, tri = mesh.ray.intersects_location([origin], [direction], multiple_hits=True)
@@ -1029,8 +1039,6 @@ def _outward_normal(
 def _default_port(path: Path, mesh: trimesh.Trimesh, com: FloatArray) -> FloatArray:
     """Port where a ray down -z through the centre of the +z bounding face meets the surface (or,
     when it misses, the nearest hit of a grid of such rays), axis the outward normal; warns."""
-    import warnings
-
     lo, hi = mesh.bounds
     top = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])
     size = float(np.max(hi - lo))
@@ -1106,12 +1114,10 @@ def _explicit_port(
     if t < size:
         raise ValueError(
             f"target mesh file {path}: a ray from the port along its axis {_fmt(axis)} meets the"
-            f" target again {t + 1e-3:.3f} m out ({angle:.0f} deg from the surface normal); expected"
-            " a clear approach axis"
+            f" target again {t + 1e-3:.3f} m out ({angle:.0f} deg from the surface normal);"
+            " expected a clear approach axis"
         )
     if angle > 30.0:
-        import warnings
-
         warnings.warn(
             f"target mesh file {path}: port axis {_fmt(axis)} is {angle:.0f} deg from the surface"
             f" normal {_fmt(n)} at the port",
@@ -1218,8 +1224,6 @@ def _surface_deviation(
 
 def _simplify(path: Path, mesh: trimesh.Trimesh, max_faces: int) -> tuple[trimesh.Trimesh, float]:
     """A simplified copy of a dense mesh and its deviation [m]; warns with both."""
-    import warnings
-
     simplified = _decimate(mesh, max_faces)
     if len(simplified.faces) == 0 or not float(simplified.area) > 0:
         raise ValueError(

@@ -141,6 +141,12 @@ def test_bad_mesh_files_rejected(tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------------------------
 # Mesh files from users: validation (issue 16)
 # ---------------------------------------------------------------------------------------------
+def _box_at(extents: tuple[float, ...], centre: tuple[float, ...]) -> trimesh.Trimesh:
+    return trimesh.creation.box(
+        extents=extents, transform=trimesh.transformations.translation_matrix(centre)
+    )
+
+
 def _one_line_refusal(path: Path, match: str, **kw: object) -> str:
     """Load ``path`` expecting a ValueError matching ``match``; the message is one line naming the
     file."""
@@ -240,11 +246,8 @@ def test_port_on_an_open_mesh_judged_by_rays(tmp_path: Path, inverted: bool) -> 
 
 def test_port_whose_approach_crosses_the_target_refused(tmp_path: Path) -> None:
     # A port on the bus's +x face looking along +x, with a plate standing 0.5 m in front of it.
-    parts = [trimesh.creation.box(extents=(1, 1, 1)),
-             trimesh.creation.box(extents=(0.05, 0.6, 0.6),
-                                  transform=trimesh.transformations.translation_matrix((1.0, 0, 0))),
-             trimesh.creation.box(extents=(0.5, 0.05, 0.05),
-                                  transform=trimesh.transformations.translation_matrix((0.75, 0.25, 0.25)))]
+    parts = [_box_at((1, 1, 1), (0, 0, 0)), _box_at((0.05, 0.6, 0.6), (1.0, 0, 0)),
+             _box_at((0.5, 0.05, 0.05), (0.75, 0.25, 0.25))]
     path = tmp_path / "blocked.stl"
     trimesh.util.concatenate(parts).export(path)
     _one_line_refusal(path, r"a ray from the port along its axis .* meets the target again 0\.47",
@@ -253,9 +256,8 @@ def test_port_whose_approach_crosses_the_target_refused(tmp_path: Path) -> None:
 
 def test_missing_port_warns_where_and_how_far(tmp_path: Path) -> None:
     # A mast on top lifts the bounding box 0.5 m above the bus face the port should go on.
-    bus = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    mast = trimesh.creation.box(extents=(0.05, 0.05, 0.5),
-                                transform=trimesh.transformations.translation_matrix((0.3, 0.3, 0.75)))
+    bus = _box_at((1.0, 1.0, 1.0), (0, 0, 0))
+    mast = _box_at((0.05, 0.05, 0.5), (0.3, 0.3, 0.75))
     path = tmp_path / "masted.stl"
     trimesh.util.concatenate([bus, mast]).export(path)
     with pytest.warns(UserWarning, match=r"masted\.stl: no port given; put it at \(0, 0, 0\.5\) m"
@@ -333,7 +335,6 @@ def test_find_symmetries_on_reference_solids() -> None:
     assert len(find_symmetries(trimesh.creation.box(extents=(1.0, 1.0, 1.0)))) == 23
     assert len(find_symmetries(trimesh.creation.cylinder(0.5, 2.0, sections=6))) == 11
     wedge = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
-    wedge = trimesh.util.concatenate([wedge, trimesh.creation.box(
-        extents=(0.3, 0.3, 0.3), transform=trimesh.transformations.translation_matrix((0.8, 0.3, 0.4)))])
+    wedge = trimesh.util.concatenate([wedge, _box_at((0.3, 0.3, 0.3), (0.8, 0.3, 0.4))])
     wedge.apply_translation(-wedge.center_mass)
     assert find_symmetries(wedge) == []

@@ -40,9 +40,11 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     zero thrust for a chaser that does not turn). The decision is latched until contact or a
     healthy pose.
 ``avoid``
-    otherwise (invalid or degraded, with a fix): brake the closing speed to zero and hold, or
-    retreat along the approach axis to the hold point, never closing in. Along the axis the
-    desired opening rate is ``clip(k_hold (s_hold - s), 0, v_retreat)`` (``s`` the distance along
+    otherwise (invalid or degraded, with a fix): brake the closing speed to zero and hold; when no
+    healthy pose has come back within ``hold_s`` (a flicker of the flags is not worth a retreat),
+    or at once when the chaser was inside ``commit_range_m`` (an abort), retreat along the approach
+    axis to the hold point. Never close in. Retreating, the desired opening rate along the axis is
+    ``clip(k_hold (s_hold - s), 0, v_retreat)`` (``s`` the distance along
     the axis: dock to port along the docking axis for glideslope/LQR; centre of mass to centre of
     mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed
     loop ``kv`` tracks it, plus the rotating-frame terms. ``s_hold`` is the controller's hold
@@ -82,6 +84,7 @@ class SafetyGains:
     commit_lateral_speed: float = 0.02  # [m/s] ... drifting across it no faster than this
     resume_s: float = 1.0  # [s] of healthy poses before an approach resumes after an avoidance
     k_fix_velocity: float = 0.1  # weight of a pose's velocity against the dead-reckoned one
+    hold_s: float = 3.0  # [s] a loss shorter than this only stops the closing; then retreat
 
 
 def rotvec_matrix(rotvec: FloatArray) -> FloatArray:
@@ -148,10 +151,12 @@ class DeadReckoning:
             s = A @ (self._c - np.concatenate([self.X, self.V])) + B @ a_body - self._c
             self.X, self.V = -s[:3], -s[3:]
             return
-        a = self.R @ a_body
+        # a body-fixed thrust turns with the body over the step: its mean direction is the midpoint's
+        half = rotvec_matrix(np.asarray(w, dtype=np.float64) * (0.5 * dt))
+        a = self.R @ half @ a_body
         self.X = self.X + self.V * dt - 0.5 * a * dt * dt
         self.V = self.V - a * dt
-        self.R = self.R @ rotvec_matrix(np.asarray(w, dtype=np.float64) * dt)
+        self.R = self.R @ half @ half
 
     def state(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Body-frame position [m] and its body-frame rate [m/s] at gyro rate ``w``."""
@@ -208,6 +213,8 @@ class CollisionAvoidance:
         self.has_fix = False
         self.mode: Mode = "nominal"
         self._avoided = False  # an avoidance since the last resume
+        self._lost = 0  # consecutive steps without a healthy pose in this avoidance
+        self.retreating = False  # this avoidance backs away to the hold point (latched)
         self._healthy = 0  # consecutive healthy steps
         self._port_offset = np.zeros(3)  # port from the reference point, body frame [m]
         self._a_prev = np.zeros(3)
@@ -257,6 +264,8 @@ class CollisionAvoidance:
             else:
                 self.mode = "nominal"
                 self._avoided = False
+                self.retreating = False
+            self._lost = 0
             self._pl = 0.0
             return self.mode
         self._healthy = 0
@@ -274,9 +283,14 @@ class CollisionAvoidance:
             self._pl = float(obs[_S["protection_level"]][0])
         if not degraded and (self.mode == "commit" or (self.mode == "nominal" and self._committable(w))):
             self.mode = "commit"
-        else:
-            self.mode = "avoid"
-            self._avoided = True
+            return self.mode
+        if self.mode in ("nominal", "commit") and self.port(w)[0][2] <= self.g.commit_range_m:
+            self.retreating = True  # abort: no hold this close to the port
+        self._lost += 1
+        if self._lost * self.dt >= self.g.hold_s - 1e-9:
+            self.retreating = True
+        self.mode = "avoid"
+        self._avoided = True
         return self.mode
 
     def _committable(self, w: FloatArray) -> bool:
@@ -316,7 +330,7 @@ class CollisionAvoidance:
         else:
             s = float(np.linalg.norm(x))
             u = x / max(s, 1e-9)
-        v_open = float(np.clip(g.k_hold * (hold - s), 0.0, g.v_retreat))
+        v_open = float(np.clip(g.k_hold * (hold - s), 0.0, g.v_retreat)) if self.retreating else 0.0
         return g.kv * (x_dot - v_open * u) + frame
 
     def applied(self, a_body: FloatArray) -> None:

@@ -65,15 +65,17 @@ Phases (:attr:`SyncController.phase`):
     near the boresight), and its thrust holds the dead-reckoned centre of mass fixed in the
     turning body frame (the centripetal ``-w x (w x x)`` and Coriolis ``-2 w x x'`` terms of that
     rate plus a speed loop): a synchronised chaser keeps turning about the target with it, on the
-    circle it was on. Along the line to the centre of mass it never closes in, and inside the hold
-    distance (the ``standoff_m`` hold point's, at least the keep-out sphere) it backs away at
-    ``safety.v_retreat``. A degraded pose's depth along the docking axis corrects the dead
+    circle it was on. Along the line to the centre of mass it never closes in; when the loss
+    outlasts ``safety.hold_s`` (or at once inside ``safety.commit_range_m``) it backs away at
+    ``safety.v_retreat`` to the hold distance (the ``standoff_m`` hold point's, at least the
+    keep-out sphere). A degraded pose's depth along the docking axis corrects the dead
     reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
     envelope's closing speed coasts into contact in the turning frame (a degraded one there
     backs away). Before any healthy pose (acquisition) a closing range rate is braked along the
     line of sight (bearing) when both are valid, else the chaser coasts. On a healthy pose again
-    (for ``safety.resume_s``) the controller re-enters ``approach`` or ``sync`` by range and must
-    dwell again before closing.
+    (for ``safety.resume_s``) after a hold that did not turn into a retreat, the controller picks up
+    its phase, hold distance and dwell where it stopped; after a retreat it re-enters ``approach``
+    or ``sync`` by range and must dwell again before closing.
 """
 
 from __future__ import annotations
@@ -208,6 +210,8 @@ class SyncController:
         self._match = np.inf  # worst low-passed matching error / its threshold
         # target attitude in the last fix's body frame and its body rate (sync/close phases)
         self._target: tuple[FloatArray, FloatArray] | None = None
+        # (phase, s, dwell, metrics) before a hold that has not turned into a retreat
+        self._paused: tuple[str, float, float, FloatArray | None] | None = None
         self.safety.reset()
 
     # ------------------------------------------------------------------ helpers
@@ -260,6 +264,10 @@ class SyncController:
                 x_dot = p_dot - np.cross(w_rel, lever)
         mode = self.safety.update(obs, x, x_dot, lever)
         if mode != "nominal":
+            if self.phase != "safe":  # where a brief hold picks up again
+                self._paused = (self.phase, self.s, self.dwell, self._metrics)
+            if self.safety.retreating:
+                self._paused = None
             self.phase = "safe"
             self.dwell = 0.0
             self._metrics = None
@@ -275,6 +283,11 @@ class SyncController:
         alpha_t = self._port_alpha(w + w_rel, R_dp)
         dist = float(np.linalg.norm(p))
 
+        if self.phase == "safe" and self._paused is not None:
+            # a hold without a retreat: carry on where the chaser stopped
+            self.phase, self.s, self.dwell, self._metrics = self._paused
+            self.s_dot = 0.0
+        self._paused = None
         if self.phase == "safe":
             self.phase = "approach" if dist > g.sync_range_m + 0.5 else "sync"
             self.s = min(max(self.s, 0.0), g.standoff_m) if self.phase == "sync" else g.standoff_m

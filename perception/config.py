@@ -290,11 +290,10 @@ class ICPConfig(StrictModel):
         "for it to count as observed (0: off)"
     )
     edge_ambiguity_sigmas: NonNegFloat = Field(
-        0.0, description="a grazing match lying within this many range sigmas (plus the model "
+        2.5, description="a grazing match lying within this many range sigmas (plus the model "
         "spacing) of a differently oriented face informs no direction: edge mixing, which held "
-        "a flat face's wrong in-plane pose with confidence. Off by default (0): at 2.5 it also "
-        "took the in-plane information of the CYGNSS-like port region at 5 m (errors 1 cm -> "
-        "5-18 cm, every frame degraded); the scan planner's predictions use it"
+        "a flat face's wrong in-plane pose with confidence; the pipeline's outline refinement "
+        "then observes those axes from the scan's outline (0: off)"
     )
     model_noise_fraction: NonNegFloat = Field(
         0.1, description="model resolution error as a fraction of the model sample spacing"
@@ -357,11 +356,13 @@ class ScanPlanConfig(StrictModel):
     """Observability-aware choice of the tracking region (:mod:`perception.observability`)."""
 
     mode: Literal["range", "observability"] = Field(
-        "range", description="range: seed 000's regions by range; observability: the candidate "
+        "observability", description="range: seed 000's regions by range; observability: the candidate "
         "region with the smallest predicted bound at the port (range strategy as the default)"
     )
-    period_s: PositiveFloat = Field(1.0, description="re-plan at least this often while tracking [s]")
-    replan_range_fraction: PositiveFloat = Field(0.1, description="re-plan when the range changed by this fraction")
+    period_s: PositiveFloat = Field(
+        1.0, description="a plan stands this long [s]; re-planned only while registrations leave "
+        "axes unobserved, or to return to the range strategy's region"
+    )
     rays: Annotated[int, Field(ge=20, le=5000)] = Field(300, description="rays per predicted scan")
     switch_factor: Annotated[float, Field(ge=1, allow_inf_nan=False)] = Field(
         1.5, description="leave the range strategy's region only for a bound this many times smaller"
@@ -369,6 +370,8 @@ class ScanPlanConfig(StrictModel):
     attitude_lever_m: NonNegFloat = Field(0.5, description="attitude bound weight in the score [m/rad]")
     edge_ambiguity_sigmas: NonNegFloat = Field(2.5, description="as icp.edge_ambiguity_sigmas")
     min_support: NonNegFloat = Field(5.0, description="as icp.min_direction_support (frame points)")
+    outline: bool = Field(True, description="count the outline information the pipeline's "
+                          "outline refinement adds (pipeline.outline_refinement)")
 
 
 class PipelineConfig(StrictModel):
@@ -440,6 +443,10 @@ class PipelineConfig(StrictModel):
         2, description="good registrations rejected by the filter gate in a row before re-init"
     )
     integrity: IntegrityConfig = IntegrityConfig()
+    outline_refinement: bool = Field(
+        True, description="when ICP leaves axes unobserved, refine the pose with the scan's "
+        "outline (samples that returned next to samples that did not)"
+    )
     scan_plan: ScanPlanConfig = ScanPlanConfig()
     fine_only_tracking: bool = Field(
         True, description="on an established track (rates estimated, the last frames accepted) "

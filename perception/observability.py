@@ -12,12 +12,18 @@ times ``attitude_lever_m``. Directions carried by grazing matches that another f
 well (edge mixing) or by fewer than ``min_support`` effective points count as unobserved, so a
 region must be observable in a way that survives a few centimetres of prediction error.
 
+With ``outline`` the prediction also counts what the pipeline's outline refinement adds where
+ICP leaves axes unobserved: consecutive samples of the predicted scan across the target's outline
+(:func:`perception.silhouette.scan_outline_pairs`), so a region that shows a flat face's edges
+scores better than one inside the face.
+
 Candidates: the target's own regions (``whole``, ``docking_area``, ``port`` and any others), boxes
 centred on the port growing by factors of two up to the whole target, and a "feature" region: the
 port plus the model points that carry the most information along the weakest direction of the
 range strategy's region, found in the prediction of the whole target. The range strategy's region
-is kept unless another candidate's bound is smaller by ``switch_factor``: the seed's strategies
-stay the frame, the prediction overrides them where they would leave an axis unobserved.
+is used as long as its registrations observe every axis, and is kept after a prediction unless
+another candidate's bound is smaller by ``switch_factor``: the seed's strategies stay the frame,
+the prediction overrides them where they leave an axis unobserved.
 """
 
 from __future__ import annotations
@@ -119,6 +125,7 @@ def predict_information(
     n_hit = int(np.count_nonzero(hit))
     if n_hit < 6:
         return fail
+    d_all = d_s
     d_s, rng, f = d_s[hit], rng[hit], face[hit]
     normals_t = face_planes(target)[0][f]
     pts_s = d_s * rng[:, None]
@@ -129,10 +136,12 @@ def predict_information(
     rows = information_rows(pts_s, normals_t @ R.T, sig, d_s, c, floor_fraction)
     if cfg.edge_ambiguity_sigmas > 0:
         foot_t = (pts_s - t) @ R
-        amb = edge_ambiguous(model, foot_t, normals_t, sig, -cos_inc[hit], cfg.edge_ambiguity_sigmas)
+        amb = edge_ambiguous(model, foot_t, normals_t, sig, -cos_inc[hit], cfg.edge_ambiguity_sigmas, d_s @ R)
         rows[amb] = 0.0
     scale = n_frame / max(n_rays, 1)
     rows = rows * math.sqrt(scale)
+    if cfg.outline:
+        rows = np.vstack([rows, _outline_information_rows(target, model, T, d_all, hit, c) * scale])
     H = rows.T @ rows
     dc = (pts_s - c).ravel()
     patch = max(math.sqrt(float(dc @ dc) / n_hit), 0.05)
@@ -150,6 +159,25 @@ def predict_information(
     att_b = _bound(cov[3:, 3:])
     return Prediction(region, info, cov, port_b, att_b, degenerate, n_hit,
                       port_b + cfg.attitude_lever_m * att_b)
+
+
+def _outline_information_rows(target: TargetModel, model: ModelCloud, T: FloatArray, d_all: FloatArray,
+                               hit: npt.NDArray[np.bool_], c: FloatArray) -> FloatArray:
+    """Rows of the outline information of a predicted scan (what the pipeline's outline
+    refinement adds): pairs of consecutive samples across the outline, their silhouette-plane
+    normals and quantisation variances, on the in-plane axes (tx, ty, rz) about ``c``."""
+    from perception.silhouette import FlashGeometry, outline_rows, scan_outline_pairs
+
+    a, b = scan_outline_pairs(d_all, hit)
+    if a.size == 0:
+        return np.zeros((0, 6))
+    geom = FlashGeometry(d_all, 1, d_all.shape[0], 0.05, 0.0, math.inf)
+    o = outline_rows(target, model, T, d_all[a], d_all[b], geom)
+    if o.r.size == 0:
+        return np.zeros((0, 6))
+    A = np.hstack([o.normal, np.cross(o.s - c, o.normal)])
+    A[:, 2:5] = 0.0  # the refinement's outline rows inform the image-plane axes only
+    return A / np.sqrt(o.var)[:, None]
 
 
 class ScanPlanner:
@@ -178,7 +206,6 @@ class ScanPlanner:
         self.region: RegionOfInterest | None = None
         self.prediction: Prediction | None = None
         self._t_plan = -math.inf
-        self._range_plan = math.nan
         self._default = ""
         self.plans = 0
 
@@ -233,31 +260,42 @@ class ScanPlanner:
         hi = np.maximum(pts_t.max(axis=0), p) + 0.05
         return RegionOfInterest("features", tuple(0.5 * (lo + hi)), tuple(0.5 * (hi - lo)))
 
-    def due(self, t: float, range_m: float, default_name: str) -> bool:
-        """A new plan is due: none yet, the period elapsed, the range changed by ``replan_range_fraction``
-        or the range strategy moved to another region."""
-        if self.region is None or default_name != self._default:
-            return True
-        if t - self._t_plan >= self.cfg.period_s - 1e-9:
-            return True
-        return abs(range_m - self._range_plan) > self.cfg.replan_range_fraction * self._range_plan
+    def due(self, t: float, weak: bool) -> bool:
+        """A prediction is due: the current region left axes unobserved (``weak``) and the last
+        plan is older than ``period_s``, or a region other than the default is in use and its
+        period elapsed (the default may serve again)."""
+        if t - self._t_plan < self.cfg.period_s - 1e-9:
+            return False
+        return weak or (self.region is not None and self.region.name != self._default)
 
     def choose(self, T_pred: npt.ArrayLike, default_name: str, frame_index: int = 0,
-               t: float = 0.0) -> tuple[RegionOfInterest, Prediction]:
-        """The region to scan now: re-planned when :meth:`due`, else the current choice.
+               t: float = 0.0, weak: bool = False) -> tuple[RegionOfInterest, Prediction | None]:
+        """The region to scan now.
+
+        The range strategy's region (seed 000 Fig. 9) serves as long as the registrations on it
+        observe every axis: predicting costs a few ray casts per candidate, spent only where the
+        strategy falls short. When ``weak`` (the last registration left axes unobserved), the
+        candidates are predicted (at most every ``period_s``) and the best is kept until the
+        next plan.
 
         Args:
             T_pred: (4, 4) predicted pose of the frame.
-            default_name: the range strategy's region (seed 000 Fig. 9).
+            default_name: the range strategy's region.
             frame_index: frame index (pattern phase).
             t: time [s].
+            weak: the last registration had unobserved axes.
+
+        Returns:
+            The region and its prediction (None when the default serves unpredicted).
         """
-        T = np.asarray(T_pred, dtype=np.float64)
-        range_m = float(np.linalg.norm(T[:3, :3] @ self.target.T_target_port[:3, 3] + T[:3, 3]))
-        if not self.due(t, range_m, default_name) and self.region is not None and self.prediction is not None:
-            return self.region, self.prediction
         regs = self.target.regions
         default = regs.get(default_name) or regs["whole"]
+        if default_name != self._default:
+            self.region, self.prediction, self._default = None, None, default_name
+            self._t_plan = -math.inf
+        if not self.due(t, weak):
+            return (self.region, self.prediction) if self.region is not None else (default, None)
+        T = np.asarray(T_pred, dtype=np.float64)
         preds = [predict_information(self.target, self.sensor, self.model, T, r, frame_index,
                                      self.cfg.rays, self.cfg, self.floor)
                  for r in self.candidates(T, default, frame_index)]
@@ -265,6 +303,6 @@ class ScanPlanner:
         base = next(p for p in preds if p.region is default)
         choice = best if best.score * self.cfg.switch_factor < base.score else base
         self.region, self.prediction = choice.region, choice
-        self._t_plan, self._range_plan, self._default = float(t), range_m, default_name
+        self._t_plan = float(t)
         self.plans += 1
         return choice.region, choice

@@ -16,6 +16,7 @@ publishes); ``StateVector.latency`` is the age of the underlying measurement. A 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,14 +27,14 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import ICPConfig, MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
-from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, make_T
+from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, make_T, pose_error, skew
 from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
 from perception.modes import FrameVerdict, ModeLogic
 from perception.numeric import median
 from perception.observability import ScanPlanner
 from perception.pointcloud import PointCloud
 from perception.registration import RegistrationResult, icp, prepare_model
-from perception.scan_patterns import make_pattern, steer_to_region
+from perception.scan_patterns import angles_to_directions, make_pattern, steer_to_region
 from perception.sensors.tridar import TriDARSensor
 from perception.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
 from perception.targets import RegionOfInterest, TargetModel
@@ -115,6 +116,8 @@ class PipelineStats:
     symmetry_checks: int = 0
     symmetry_switches: int = 0
     reacquired_from_track: int = 0
+    outline_refinements: int = 0
+    outline_accepted: int = 0
     registration_time_s: list[float] = field(default_factory=list)
 
 
@@ -199,6 +202,7 @@ class TriDAR:
         self._sym_votes = 0
         self._sym_candidate = -1
         self._lost_track: PoseFilter | None = None
+        self._frame_pattern: tuple[Any, float] | None = None  # (pattern, start time) of the frame
         if self.planner is not None:
             self.planner.reset()
         self.stats = PipelineStats()
@@ -440,11 +444,22 @@ class TriDAR:
         self._outputs.append(out)
 
     def _measurement_cov(self, res: RegistrationResult) -> FloatArray:
-        """Registration covariance plus the configured floors (what the bound leaves out)."""
-        cov = res.covariance.copy()
+        """Registration covariance plus the configured floors (what the bound leaves out).
+
+        The floors are added about the filter's reference point (the docking port), where the
+        scan looks and where they were measured: added about a centre of mass 12 m behind the
+        port, the attitude floor alone would put 0.3 deg x 12 m = 6 cm of position error on a
+        port whose position is known to a few millimetres.
+        """
+        a = res.T_sensor_target[:3, :3] @ self.target.T_target_port[:3, 3]
+        J = np.eye(6)
+        J[:3, 3:] = -skew(a)  # origin -> port: dp_port = dp - [a]x dtheta
+        cov = J @ res.covariance @ J.T
         cov.flat[0:21:7] += self.pc.measurement_floor_m**2
         cov.flat[21::7] += math.radians(self.pc.measurement_floor_deg) ** 2
-        return cov
+        J[:3, 3:] = skew(a)  # and back
+        cov = J @ cov @ J.T
+        return 0.5 * (cov + cov.T)
 
     # ------------------------------------------------------------------ tracking
     def _tracking_pattern(self, T_pred: FloatArray, t: float = 0.0) -> tuple[Any, str]:
@@ -452,7 +467,8 @@ class TriDAR:
         region = self.logic.region_for_range(rng_m)
         roi = self.target.regions.get(region) or self.target.regions["whole"]
         if self.planner is not None:
-            roi, _ = self.planner.choose(T_pred, region, self.frame_index, t)
+            weak = self.last_result is not None and bool(self.last_result.degenerate_axes)
+            roi, _ = self.planner.choose(T_pred, region, self.frame_index, t, weak)
             region = roi.name
         try:
             pattern = self.sensor.make_scan_pattern(self.frame_index, T_pred, roi)
@@ -484,6 +500,8 @@ class TriDAR:
         icp_cfg = self.logic.icp_config_for(cloud.subsystem)
         res = icp(pts, self.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
                   config=icp_cfg, coarse=not settled)
+        self._frame_pattern = None if isinstance(scene, PointCloud) else (pattern, t)
+        res = self._outline_refine(res, pts, cloud)
         self.last_result = res
         self.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), self.pc.measurement_floor_m)
@@ -526,6 +544,46 @@ class TriDAR:
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         self._outputs.append(out)
 
+    def _outline_refine(self, res: RegistrationResult, pts: FloatArray, cloud: PointCloud) -> RegistrationResult:
+        """Where ICP left axes unobserved, add what the scan says about the outline.
+
+        The samples of the frame's pattern that gave no return bound the target as much as the
+        returns locate its surface: where the scan's curve crosses the outline, the model's
+        outline must cross the same short arc (:func:`perception.silhouette.scan_outline_pairs`,
+        the scanning form of seed 003's depth-map outline). A flat face seen head-on, which
+        point-to-plane ICP cannot place in its plane, is placed by its edges. The refinement is
+        kept when it converges, observes more axes than ICP did and stays within a frame's jump of
+        ICP's pose; its covariance is the joint information's.
+        """
+        if not (res.degenerate_axes and self.pc.outline_refinement and self._frame_pattern is not None):
+            return res
+        from perception.silhouette import FlashGeometry, refine_with_outline, scan_outline_pairs
+
+        pattern, t0 = self._frame_pattern
+        dirs = angles_to_directions(pattern.az, pattern.el)
+        returned = np.isin(t0 + pattern.times, cloud.times)
+        a, b = scan_outline_pairs(dirs, returned)
+        if a.size < 3:
+            return res
+        geom = FlashGeometry(dirs, 1, dirs.shape[0], 0.05, 0.0, math.inf)
+        icp_cfg = self.logic.icp_config_for(cloud.subsystem)
+        ref = refine_with_outline(
+            pts, cloud.directions, cloud.sigma, dirs[a], dirs[b], self.target, self.model,
+            res.T_sensor_target, geom, noise_floor_fraction=icp_cfg.noise_floor_fraction,
+            back_facing_cos=icp_cfg.back_facing_cos, gate_m=max(3.0 * res.inlier_rmse, 0.05),
+        )
+        self.stats.outline_refinements += 1
+        if not ref.converged or len(ref.degenerate_axes) >= len(res.degenerate_axes):
+            return res
+        # A refinement that turns or moves the pose further than a frame may jump has found
+        # another basin of the outline (a near-symmetric twin), not the slide it is there for.
+        dt, dr = pose_error(ref.T_sensor_target, res.T_sensor_target)
+        if dt > self.pc.max_jump_m or dr > self.pc.max_jump_deg:
+            return res
+        self.stats.outline_accepted += 1
+        return dataclasses.replace(ref, fitness=res.fitness, inlier_rmse=res.inlier_rmse,
+                                   n_inliers=res.n_inliers, time_s=res.time_s + ref.time_s)
+
     def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
                         t_ref: float, icp_cfg: ICPConfig) -> None:
         """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
@@ -566,6 +624,7 @@ class TriDAR:
         self._sym_candidate = best_i
         if self._sym_votes < self.pc.symmetry_switch_checks:
             return
+        best_res = self._outline_refine(best_res, pts, cloud)
         f = self.filter
         v_origin = f.target_state()[1]
         f.initialize(t_ref, best_res.T_sensor_target, self._measurement_cov(best_res),

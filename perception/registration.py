@@ -1187,10 +1187,12 @@ def _model_sigma(mc: ModelCloud, cfg: ICPConfig) -> float:
 _GRAZING_COS = 0.25
 #: Model normals this far apart (cosine below) are different faces for the ambiguity test.
 _OTHER_FACE_COS = 0.7
+#: Points along the noise band of a grazing match at which the closest face is checked.
+_AMBIGUITY_STEPS = 5
 
 
 def edge_ambiguous(mc: ModelCloud, foot: FloatArray, normal: FloatArray, sig: FloatArray,
-                    cos_ray: FloatArray, n_sigmas: float) -> npt.NDArray[np.bool_]:
+                   cos_ray: FloatArray, n_sigmas: float, rays: FloatArray | None = None) -> npt.NDArray[np.bool_]:
     """Grazing matches that another face of the model explains as well: edge mixing.
 
     A point whose ray meets its face at a grazing angle carries a large weight in the
@@ -1198,9 +1200,10 @@ def edge_ambiguous(mc: ModelCloud, foot: FloatArray, normal: FloatArray, sig: Fl
     lies within the noise of the neighbouring face too: a face-on point whose noise put it a few
     centimetres below a box's front face is "on" the side face. Which face it came from is not
     known, so it pins nothing: a wrong pose of a flat face held by a strip of such points would
-    otherwise look confident. A grazing match is ambiguous when a model sample whose normal
-    differs by more than ~45 deg lies within ``n_sigmas`` sigmas plus the model spacing of its
-    foot.
+    otherwise look confident. A grazing match is ambiguous when, along its ray within
+    ``n_sigmas`` range sigmas of its foot, the model's closest face turns to one whose normal
+    differs by more than ~45 deg (exact faces of the model's :class:`FaceGrid`; without one, a
+    surface sample within that distance plus the sample spacing).
 
     Args:
         mc: the model.
@@ -1208,17 +1211,30 @@ def edge_ambiguous(mc: ModelCloud, foot: FloatArray, normal: FloatArray, sig: Fl
         normal: (K, 3) their unit normals, target frame.
         sig: (K,) range sigma of the points [m].
         cos_ray: (K,) ``normal . ray direction``.
+        n_sigmas: the noise band [sigmas].
+        rays: (K, 3) unit rays, target frame (needed for the face test).
     """
     out = np.zeros(foot.shape[0], dtype=bool)
     g = np.flatnonzero(np.abs(cos_ray) < _GRAZING_COS)
     if g.size == 0:
         return out
-    r = n_sigmas * sig[g] + mc.spacing
-    dist, idx = mc.kdtree.query(foot[g], k=12, distance_upper_bound=float(r.max()))
-    near = (idx < mc.points.shape[0]) & (dist <= r[:, None])
-    nb = mc.normals[np.minimum(idx, mc.points.shape[0] - 1)]
-    other = np.einsum("ikj,ij->ik", nb, normal[g]) < _OTHER_FACE_COS
-    out[g] = np.any(near & other, axis=1)
+    if mc.grid is None or rays is None:
+        r = n_sigmas * sig[g] + mc.spacing
+        dist, idx = mc.kdtree.query(foot[g], k=12, distance_upper_bound=float(r.max()))
+        near = (idx < mc.points.shape[0]) & (dist <= r[:, None])
+        nb = mc.normals[np.minimum(idx, mc.points.shape[0] - 1)]
+        other = np.einsum("ikj,ij->ik", nb, normal[g]) < _OTHER_FACE_COS
+        out[g] = np.any(near & other, axis=1)
+        return out
+    steps = np.linspace(-1.0, 1.0, _AMBIGUITY_STEPS)
+    band = n_sigmas * sig[g]
+    q = (foot[g][None, :, :] + (steps[:, None] * band)[:, :, None] * rays[g][None, :, :]).reshape(-1, 3)
+    tol = np.tile(np.maximum(0.2 * band, 1e-3), steps.size)
+    found, dist, face, _ = mc.grid.nearest(q, along_rays=False)
+    n_face = mc.grid.planes[face][:, 0, :3]
+    k = found % g.size
+    other = (np.einsum("ij,ij->i", n_face, normal[g][k]) < _OTHER_FACE_COS) & (dist <= tol[found])
+    out[g[np.unique(k[other])]] = True
     return out
 
 
@@ -1280,7 +1296,8 @@ def _finish(
     if cfg.edge_ambiguity_sigmas > 0:
         # Edge mixing: grazing matches another face explains as well inform no direction.
         amb = edge_ambiguous(mc, m.foot, m.normal, sig[m.sel],
-                              np.einsum("ij,ij->i", m.normal, d_all[m.sel]), cfg.edge_ambiguity_sigmas)
+                             np.einsum("ij,ij->i", m.normal, d_all[m.sel]), cfg.edge_ambiguity_sigmas,
+                             d_all[m.sel])
         rows[amb] = 0.0
     H = rows.T @ rows
     dc = (foot_s - c).ravel()

@@ -57,6 +57,8 @@ __all__ = [
     "outline_pairs",
     "outline_rows",
     "refine_pose",
+    "refine_with_outline",
+    "scan_outline_pairs",
 ]
 
 
@@ -126,6 +128,40 @@ def outline_pairs(valid_mask: npt.ArrayLike) -> tuple[IntArray, IntArray]:
         a_l += [ia[m], ib[~va & vb]]
         b_l += [ib[m], ia[~va & vb]]
     return np.concatenate(a_l).astype(np.intp), np.concatenate(b_l).astype(np.intp)
+
+
+def scan_outline_pairs(
+    directions: npt.ArrayLike, returned: npt.ArrayLike, max_step_factor: float = 3.0
+) -> tuple[IntArray, IntArray]:
+    """Consecutive samples of a scan pattern across the target's outline.
+
+    A scanning LIDAR draws a continuous curve; where one sample returns and the next does not (or
+    the reverse), the target's outline crosses the short arc between the two rays, just as
+    between two flash pixels. Steps much longer than the pattern's typical step (a raster's line
+    return, a jump between petals) are not pairs.
+
+    Args:
+        directions: (N, 3) unit rays of the pattern's samples in time order, sensor frame.
+        returned: (N,) bool, which samples gave a return.
+        max_step_factor: longest step, in median steps, that still makes a pair.
+
+    Returns:
+        ``(a, b)`` sample indices (K,): ``a`` returned, ``b`` its neighbour that did not.
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    ok = np.asarray(returned, dtype=bool)
+    if d.ndim != 2 or d.shape[1] != 3 or ok.shape != (d.shape[0],):
+        raise ValueError(f"directions {d.shape} and returned {ok.shape}; expected (N, 3) and (N,)")
+    if d.shape[0] < 2:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    step = np.linalg.norm(np.diff(d, axis=0), axis=1)
+    short = step <= max_step_factor * float(np.median(step))
+    k = np.arange(d.shape[0] - 1)
+    fwd = ok[:-1] & ~ok[1:] & short
+    bwd = ~ok[:-1] & ok[1:] & short
+    a = np.concatenate([k[fwd], k[bwd] + 1]).astype(np.intp)
+    b = np.concatenate([k[fwd] + 1, k[bwd]]).astype(np.intp)
+    return a, b
 
 
 def _valid_hits(target: TargetModel, T: FloatArray, d_sensor: FloatArray, geom: FlashGeometry
@@ -392,12 +428,64 @@ def refine_pose(
     if cloud.valid_mask.shape != (geom.rows, geom.cols):
         raise ValueError(f"cloud grid {cloud.valid_mask.shape} != sensor {(geom.rows, geom.cols)}")
     a, b = outline_pairs(cloud.valid_mask)
-    if a.size > max_pairs:
-        a, b = a[:: -(-a.size // max_pairs)], b[:: -(-a.size // max_pairs)]
-    da, db = geom.directions[a], geom.directions[b]
     idx = np.arange(len(cloud)) if surface_idx is None else np.asarray(surface_idx)
-    P = cloud.points[idx]
-    D = cloud.directions[idx]
+    return refine_with_outline(
+        cloud.points[idx], cloud.directions[idx], sigma, geom.directions[a], geom.directions[b],
+        target, model, T, geom, max_pairs=max_pairs, iterations=iterations, gate_m=gate_m,
+        kernel_scale=kernel_scale, noise_floor_fraction=noise_floor_fraction,
+        back_facing_cos=back_facing_cos, step_tol_sigma=step_tol_sigma, outline_axes=outline_axes,
+        reach_px=reach_px, t_start=t_start,
+    )
+
+
+def refine_with_outline(
+    P: FloatArray,
+    D: FloatArray,
+    sigma: float | npt.ArrayLike,
+    da: FloatArray,
+    db: FloatArray,
+    target: TargetModel,
+    model: ModelCloud,
+    T_init: npt.ArrayLike,
+    geom: FlashGeometry,
+    *,
+    max_pairs: int = 1500,
+    iterations: int = 4,
+    gate_m: float = 0.05,
+    kernel_scale: float = 2.5,
+    noise_floor_fraction: float = 0.2,
+    back_facing_cos: float = 0.3,
+    step_tol_sigma: float = 0.2,
+    outline_axes: tuple[int, ...] = (0, 1, 5),
+    reach_px: int = 3,
+    t_start: float | None = None,
+) -> RegistrationResult:
+    """The Gauss-Newton of :func:`refine_pose` on given surface points and outline pairs (any
+    sensor: a flash frame's pixel pairs, or consecutive samples of a scan across the outline,
+    :func:`scan_outline_pairs`).
+
+    Args:
+        P: (N, 3) measured points [m], sensor frame (de-skewed to the pose's time).
+        D: (N, 3) their unit rays.
+        sigma: range noise 1-sigma [m], scalar or (N,).
+        da, db: (K, 3) rays of the returning samples and of their non-returning neighbours.
+        target, model, T_init, geom: as in :func:`refine_pose` (only ``geom``'s validity rule is
+            used here, not its pixel grid).
+        max_pairs ... reach_px: as in :func:`refine_pose`.
+        t_start: the caller's start time (``time.perf_counter``) for ``time_s``.
+    """
+    if t_start is None:
+        t_start = time.perf_counter()
+    if model.grid is None:
+        raise ValueError("model has no FaceGrid; refine_with_outline needs the model's faces")
+    T = check_rigid(T_init, "T_init").copy()
+    P = np.asarray(P, dtype=np.float64)
+    D = np.asarray(D, dtype=np.float64)
+    sig_all = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (P.shape[0],))
+    if da.shape[0] > max_pairs:
+        stride = -(-da.shape[0] // max_pairs)
+        da, db = da[::stride], db[::stride]
+    n_pts = P.shape[0]
     grid = model.grid
     axis_mask = np.zeros(6)
     axis_mask[list(outline_axes)] = 1.0
@@ -427,7 +515,7 @@ def refine_pose(
         ns = nt @ R.T
         rs = v[:, 0]
         foot = (q[found] - rs[:, None] * nt) @ R.T + t
-        var_s = sigma**2 * (cos * cos + noise_floor_fraction**2)
+        var_s = sig_all[found] ** 2 * (cos * cos + noise_floor_fraction**2)
         As = np.hstack([ns, np.cross(foot - t, ns)])
         # After the first step the model's outline is within a pixel of where it will end.
         orow = outline_rows(target, model, T, da, db, geom, reach_px=reach_px if it == 1 else 1)
@@ -443,7 +531,7 @@ def refine_pose(
         if n_surf + n_out < 6:
             return RegistrationResult.failure(
                 f"{n_surf} surface and {n_out} outline rows; refinement needs >= 6",
-                T_init, n_points=len(idx), time_s=time.perf_counter() - t_start, iterations=it)
+                T_init, n_points=n_pts, time_s=time.perf_counter() - t_start, iterations=it)
         damp = 1e-9 * float(np.max(np.diag(H))) + 1e-12
         xi = np.linalg.solve(H + damp * np.eye(6), g)
         T_new = np.eye(4)
@@ -457,14 +545,14 @@ def refine_pose(
     cov, degenerate = covariance_from_information(H, radius)
     return RegistrationResult(
         T_sensor_target=T,
-        fitness=n_surf / max(len(idx), 1),
+        fitness=n_surf / max(n_pts, 1),
         inlier_rmse=0.0,
         converged=converged,
         iterations=it,
         covariance=cov,
         degenerate_axes=degenerate,
         reason="" if converged else f"not converged after {iterations} iterations",
-        n_points=len(idx),
+        n_points=n_pts,
         n_inliers=n_surf,
         time_s=time.perf_counter() - t_start,
     )

@@ -79,8 +79,8 @@ def test_support_rule_flags_a_direction_carried_by_two_points() -> None:
     assert "tx" in names
 
 
-def _plate() -> TargetModel:
-    mesh = trimesh.creation.box(extents=(2.0, 2.0, 0.3))
+def _plate(side: float = 2.0) -> TargetModel:
+    mesh = trimesh.creation.box(extents=(side, side, 0.3))
     nf = len(mesh.faces)
     T_port = make_T(None, [0.0, 0.0, 0.15])
     return TargetModel(name="plate", mesh=mesh, reflectivity=np.full(nf, 0.6), specular=np.zeros(nf, bool),
@@ -116,8 +116,11 @@ def test_prediction_of_the_iss_port_is_full_rank_and_planner_keeps_its_regions()
     assert isinstance(tri.planner, ScanPlanner)
     for r, default in ((10.0, "whole"), (5.0, "docking_area")):
         T = approach_pose(cfg, target, r)
-        roi, pred = tri.planner.choose(T, default, 0, 0.0)
-        assert pred.degenerate_axes == [] and pred.port_bound_m < 0.02
+        # Registrations that observe every axis: the range strategy serves, nothing predicted.
+        roi, pred = tri.planner.choose(T, default, 0, 0.0, weak=False)
+        assert roi.name == default and pred is None and tri.planner.plans == 0
+        roi, pred = tri.planner.choose(T, default, 0, 0.0, weak=True)
+        assert pred is not None and pred.degenerate_axes == [] and pred.port_bound_m < 0.02
         assert roi.name == default
         tri.planner.reset()
 
@@ -130,36 +133,58 @@ def test_planner_moves_off_a_degenerate_default_when_a_candidate_observes_more()
     tri = TriDAR(cfg, target)
     T = approach_pose(cfg, target, 10.0)
     default = target.regions["docking_area"]
-    roi, pred = tri.planner.choose(T, "docking_area", 0, 0.0)
+    roi, pred = tri.planner.choose(T, "docking_area", 0, 0.0, weak=True)
+    assert pred is not None
     base = predict_information(target, tri.sensor, tri.model, T, default, 0, cfg.pipeline.scan_plan.rays,
                                cfg.pipeline.scan_plan)
     assert pred.score <= base.score
     names = {r.name for r in tri.planner.candidates(T, default, 0)}
     assert roi.name in names
-    # Not due again until the period elapses or the range changes.
-    assert not tri.planner.due(0.5, float(np.linalg.norm(T[:3, 3] + T[:3, :3] @ target.T_target_port[:3, 3])),
-                               "docking_area")
-    assert tri.planner.due(1.0, 10.0, "docking_area")
+    # Not due again before the period, even while weak; after it, only while weak or away
+    # from the default region.
+    assert not tri.planner.due(0.5, True)
+    assert tri.planner.due(1.0, True)
+    assert tri.planner.due(1.0, False) == (roi.name != "docking_area")
+
+
+def _track_still(target: TargetModel, range_m: float, n: int = 60, **overrides: object):  # type: ignore[no-untyped-def]
+    from perception.state import TruthScene
+
+    cfg = load_config("final_approach", pipeline__use_corridor=False, **overrides)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(1))
+    T0 = approach_pose(cfg, target, range_m)
+    tri.seed_pose(T0, 0.0)
+    svs = [tri.step(TruthScene(T0, 0.2 * k), 0.2 * k) for k in range(n)]
+    return tri, T0, [sv for sv in svs if sv.valid.position]
 
 
 def test_flat_face_track_reports_its_unobserved_axes_and_degrades() -> None:
-    """Tracking a flat plate's face head-on (no feature in view): the registration says tx, ty,
-    rz are unobserved, the filter's covariance grows along them, and the published pose turns
-    degraded instead of staying valid while it drifts."""
-    target = _plate()
-    cfg = load_config("final_approach", pipeline__use_corridor=False)
-    tri = TriDAR(cfg, target)
-    tri.reset(np.random.default_rng(1))
-    T0 = approach_pose(cfg, target, 4.0)
-    from perception.state import TruthScene
-
-    tri.seed_pose(T0, 0.0)
-    svs = []
-    for k in range(60):
-        t = 0.2 * k
-        svs.append(tri.step(TruthScene(T0, t), t))
-    tracked = [sv for sv in svs if sv.valid.position]
+    """A 6 m plate's face head-on at 4 m fills the 30 deg field of view: no edge, no feature.
+    The registration says tx, ty, rz are unobserved, the filter's covariance grows along them,
+    and the published pose turns degraded instead of staying valid while it drifts."""
+    tri, _, tracked = _track_still(_plate(6.0), 4.0)
     assert tracked, "the seeded pose starts a track"
     assert tri.last_result is not None and {"tx", "ty"} <= set(tri.last_result.degenerate_axes)
     assert tracked[-1].valid.degraded and not tracked[-1].valid.pose
     assert tracked[-1].protection_level > tracked[-1].alert_limit
+
+
+def test_a_plate_whose_edges_are_in_view_is_placed_by_its_outline() -> None:
+    """The 2 m plate at 4 m: ICP alone leaves its face's in-plane axes unobserved; the scan
+    planner moves to a region showing the edges and the outline refinement places the plate:
+    nine poses in ten or more are valid, every error is inside the protection level. With the seed's
+    range strategy and no outline, it degrades instead."""
+    target = _plate(2.0)
+    tri, T0, tracked = _track_still(target, 4.0)
+    r = target.T_target_port[:3, 3]
+    late = tracked[10:]
+    assert late and np.mean([sv.valid.pose for sv in late]) >= 0.9
+    for sv in late:
+        T = sv.T_sensor_target
+        err = np.linalg.norm(T[:3, :3] @ r + T[:3, 3] - (T0[:3, :3] @ r + T0[:3, 3]))
+        assert err < sv.protection_level
+    assert tri.stats.outline_accepted > 0
+    tri, _, tracked = _track_still(target, 4.0, pipeline__scan_plan__mode="range",
+                                   pipeline__outline_refinement=False)
+    assert tracked[-1].valid.degraded

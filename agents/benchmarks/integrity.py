@@ -485,7 +485,7 @@ def run(args: argparse.Namespace) -> int:
           "so the true band is wider (the printed one is optimistic).")
     meta = {"runs": args.runs, "seeds": seeds, "shape_seed": args.shape_seed,
             "max_steps": args.max_steps, "mission": "final_approach", "controller": "glideslope",
-            "perception": "tridar", "targets": [c.label for c, _ in zip(cases, groups)],
+            "perception": "tridar", "targets": [c.label for c in cases],
             "overrides": {c.label: c.overrides for c in cases}}
     files = write_rows(out, rows, meta)
     runs_path = out / "runs.json"

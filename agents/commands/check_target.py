@@ -340,7 +340,7 @@ def verdict(rows: list[MapRow], campaign: dict[str, dict[str, Any]] | None,
         bad = [(b, f) for b, _, f in deg_bins if f > 0.0]
         if bad:
             degraded.append("pose published degraded (PL > AL: controller holds) at "
-                            + ", ".join(f"{_bin_text(b)} ({100 * f:.0f} % of frames)" for b, f in bad))
+                            + ", ".join(f"{_bin_text(b)} ({100 * f:.2g} % of frames)" for b, f in bad))
     if not_ready:
         return "NOT READY", not_ready + degraded
     if degraded:
@@ -448,7 +448,7 @@ def run(args: argparse.Namespace) -> int:
         deg_bins = degraded_by_range(records["tridar"])
         if deg_bins:
             say("  pipeline pose frames by range: " + "; ".join(
-                f"{_bin_text(b)} {n} frames, {100 * f:.0f} % degraded" for b, n, f in deg_bins))
+                f"{_bin_text(b)} {n} frames, {100 * f:.2g} % degraded" for b, n, f in deg_bins))
         write_rows(out, list(campaign.values()), {"mesh": str(args.mesh), "overrides": case.overrides,
                                                   "seeds": seeds, "max_steps": args.max_steps})
         import csv

@@ -52,9 +52,11 @@ SHAPE_SEED = 2026
 ERROR_SLACK_M = 1e-9
 #: Chi-square(3) mean of an honest 3-dof NEES.
 NEES_DOF = 3
+#: Sensor-to-port range bins of the by-range breakdown [m].
+RANGE_BINS_M = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 
 __all__ = [
-    "LIBRARY_TARGETS", "SHAPE_SEED", "RunRecord", "TargetCase", "fly", "generated_case",
+    "LIBRARY_TARGETS", "RANGE_BINS_M", "SHAPE_SEED", "RunRecord", "by_range", "TargetCase", "fly", "generated_case",
     "library_case", "make_case_env", "nees", "nees_band", "summarise", "wilson_interval",
 ]
 
@@ -309,6 +311,34 @@ def summarise(label: str, records: Sequence[RunRecord], wall_s: float | None = N
     }
 
 
+def by_range(records: Sequence[RunRecord]) -> list[dict[str, Any]]:
+    """Frames, degraded fraction, HMI, MI and the largest valid port error per range bin
+    (:data:`RANGE_BINS_M`, true sensor-to-port range) over all the records' pose frames."""
+    if not records:
+        return []
+    cat = (lambda k: np.concatenate([getattr(r, k) for r in records]))
+    rng, err, pl = cat("range_m"), cat("port_err_m"), cat("pl_m")
+    deg = cat("degraded").astype(bool)
+    mis = err > pl + ERROR_SLACK_M
+    out = []
+    for lo, hi in RANGE_BINS_M:
+        m = (rng >= lo) & (rng < hi)
+        n = int(m.sum())
+        if n == 0:
+            continue
+        ok = m & ~deg
+        out.append({
+            "range [m]": f"{lo:g}-{hi:g}" if math.isfinite(hi) else f"> {lo:g}",
+            "frames": n,
+            "degraded": float(deg[m].mean()),
+            "HMI": int((mis & ok).sum()),
+            "MI": int((mis & m).sum()),
+            "max err valid [m]": float(err[ok].max()) if ok.any() else math.nan,
+            "median PL [m]": float(np.median(pl[m])),
+        })
+    return out
+
+
 def _fmt(v: float, spec: str = ".3g") -> str:
     return "nan" if not np.isfinite(v) else format(v, spec)
 
@@ -487,7 +517,25 @@ def run(args: argparse.Namespace) -> int:
             "max_steps": args.max_steps, "mission": "final_approach", "controller": "glideslope",
             "perception": "tridar", "targets": [c.label for c in cases],
             "overrides": {c.label: c.overrides for c in cases}}
+    ranges = by_range(all_recs)
+    print("all targets by range to the port:")
+    print(format_table(ranges))
     files = write_rows(out, rows, meta)
+    import csv
+
+    by_range_path = out / "by_range.csv"
+    with by_range_path.open("x", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(ranges[0].keys()) if ranges else ["range [m]"])
+        w.writeheader()
+        w.writerows(ranges)
+    frames_path = out / "frames.npz"  # per-frame arrays of every run, for later analysis
+    arrays: dict[str, Any] = {}
+    for i, rec in enumerate(all_recs):
+        for k in ("range_m", "port_err_m", "att_err_rad", "pl_m", "al_m", "degraded", "nees_pos", "nees_att"):
+            arrays[f"{i:03d}_{k}"] = getattr(rec, k)
+    np.savez_compressed(frames_path, labels=np.array([f"{r.label} seed {r.seed} {r.outcome}" for r in all_recs]),
+                        **arrays)
+    files += [by_range_path, frames_path]
     runs_path = out / "runs.json"
     with runs_path.open("x") as f:
         json.dump(per_run, f, indent=2)

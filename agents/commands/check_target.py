@@ -35,8 +35,6 @@ from agents.cli import command
 
 #: Ranges to the port along the nominal approach for the observability map [m].
 MAP_RANGES_M = (30.0, 20.0, 10.0, 5.0, 3.0, 2.0, 1.0)
-#: Range bins of the campaign's degraded-frame breakdown [m].
-RANGE_BINS_M = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 1e9))
 #: "Close in" for the verdict: inside this range an unobserved axis is a problem [m].
 CLOSE_IN_M = 5.0
 
@@ -289,6 +287,8 @@ def degraded_by_range(records: list[Any]) -> list[tuple[tuple[float, float], int
     """``((lo, hi), frames, degraded fraction)`` per range bin over the records' pose frames."""
     import numpy as np
 
+    from agents.benchmarks.integrity import RANGE_BINS_M
+
     if not records:
         return []
     rng = np.concatenate([r.range_m for r in records])
@@ -302,7 +302,7 @@ def degraded_by_range(records: list[Any]) -> list[tuple[tuple[float, float], int
 
 
 def _bin_text(b: tuple[float, float]) -> str:
-    return f"{b[0]:g}-{b[1]:g} m" if b[1] < 1e8 else f"> {b[0]:g} m"
+    return f"{b[0]:g}-{b[1]:g} m" if math.isfinite(b[1]) else f"> {b[0]:g} m"
 
 
 # --------------------------------------------------------------------------- (e) verdict

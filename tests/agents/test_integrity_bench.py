@@ -9,6 +9,7 @@ import pytest
 
 from agents.benchmarks.integrity import (
     RunRecord,
+    by_range,
     fly,
     library_case,
     make_case_env,
@@ -108,3 +109,15 @@ def test_new_folder_never_reuses_an_existing_one(tmp_path):
     second = new_folder(tmp_path / "out")
     assert second != first and second.name == "out-2"
     assert (first / "keep.txt").read_text() == "x"
+
+
+def test_by_range_bins_frames_by_true_range():
+    rec = _record("docked", err=[0.01, 0.2, 0.05, 0.001], pl=[0.02, 0.1, 0.01, 0.01],
+                  degraded=[False, False, True, False], nees_pos=[1.0, 1.0, 1.0, 1.0])
+    rec.range_m = np.array([25.0, 7.0, 3.0, 1.0])
+    rows = {r["range [m]"]: r for r in by_range([rec])}
+    assert set(rows) == {"0-2", "2-5", "5-10", "> 20"}
+    assert rows["5-10"]["HMI"] == 1 and rows["5-10"]["max err valid [m]"] == pytest.approx(0.2)
+    assert rows["2-5"]["HMI"] == 0 and rows["2-5"]["MI"] == 1 and rows["2-5"]["degraded"] == 1.0
+    assert math.isnan(rows["2-5"]["max err valid [m]"])
+    assert sum(r["frames"] for r in rows.values()) == 4

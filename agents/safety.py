@@ -27,7 +27,8 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
 **Rule.** Each step :meth:`CollisionAvoidance.update` says one of:
 
 ``nominal``
-    healthy pose (and, after an avoidance, healthy for ``resume_s``): the controller flies its law.
+    healthy pose (and, after an avoidance, healthy for as long as it was lost, at most and after
+    a retreat ``resume_s``): the controller flies its law.
 ``blind``
     no trusted pose yet this episode (acquisition): nothing to dead-reckon from; the controller's
     own loss-of-pose rule applies (brake a closing range rate along the line of sight, else coast).
@@ -82,7 +83,8 @@ class SafetyGains:
     commit_range_m: float = 0.4  # [m] a healthy pose lost closer than this may coast into contact
     commit_lateral_m: float = 0.05  # [m] ... when the dock is this close to the port axis
     commit_lateral_speed: float = 0.02  # [m/s] ... drifting across it no faster than this
-    resume_s: float = 1.0  # [s] of healthy poses before an approach resumes after an avoidance
+    resume_s: float = 1.0  # [s] of healthy poses before an approach resumes (at most as long as
+    # the pose was lost, unless the chaser retreated)
     k_fix_velocity: float = 0.1  # weight of a pose's velocity against the dead-reckoned one
     hold_s: float = 3.0  # [s] a loss shorter than this only stops the closing; then retreat
 
@@ -214,6 +216,7 @@ class CollisionAvoidance:
         self.mode: Mode = "nominal"
         self._avoided = False  # an avoidance since the last resume
         self._lost = 0  # consecutive steps without a healthy pose in this avoidance
+        self._lost_s = 0.0  # longest such run since the last resume [s]
         self.retreating = False  # this avoidance backs away to the hold point (latched)
         self._healthy = 0  # consecutive healthy steps
         self._port_offset = np.zeros(3)  # port from the reference point, body frame [m]
@@ -259,12 +262,15 @@ class CollisionAvoidance:
             self.has_fix = True
             self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
             self._healthy += 1
-            if self._avoided and self._healthy * self.dt < self.g.resume_s - 1e-9:
-                self.mode = "avoid"  # hold on fresh fixes until the track has proved itself
+            # the track proves itself for as long as it was lost, up to resume_s
+            prove = self.g.resume_s if self.retreating else min(self.g.resume_s, self._lost_s)
+            if self._avoided and self._healthy * self.dt < prove - 1e-9:
+                self.mode = "avoid"  # hold on fresh fixes until then
             else:
                 self.mode = "nominal"
                 self._avoided = False
                 self.retreating = False
+                self._lost_s = 0.0
             self._lost = 0
             self._pl = 0.0
             return self.mode
@@ -287,6 +293,7 @@ class CollisionAvoidance:
         if self.mode in ("nominal", "commit") and self.port(w)[0][2] <= self.g.commit_range_m:
             self.retreating = True  # abort: no hold this close to the port
         self._lost += 1
+        self._lost_s = max(self._lost_s, self._lost * self.dt)
         if self._lost * self.dt >= self.g.hold_s - 1e-9:
             self.retreating = True
         self.mode = "avoid"

@@ -74,7 +74,7 @@ Phases (:attr:`SyncController.phase`):
     backs away). Before any healthy pose (acquisition) a closing range rate is braked along the
     line of sight (bearing) when both are valid, else the chaser coasts. On a healthy pose again
     (for ``safety.resume_s``) after a hold that did not turn into a retreat, the controller picks up
-    its phase, hold distance and dwell where it stopped; after a retreat it re-enters ``approach``
+    its phase, hold point and dwell where it stopped; after a retreat it re-enters ``approach``
     or ``sync`` by range and must dwell again before closing.
 """
 
@@ -210,8 +210,8 @@ class SyncController:
         self._match = np.inf  # worst low-passed matching error / its threshold
         # target attitude in the last fix's body frame and its body rate (sync/close phases)
         self._target: tuple[FloatArray, FloatArray] | None = None
-        # (phase, s, dwell, metrics) before a hold that has not turned into a retreat
-        self._paused: tuple[str, float, float, FloatArray | None] | None = None
+        # (phase, s, s_dot, dwell, metrics) before a hold that has not turned into a retreat
+        self._paused: tuple[str, float, float, float, FloatArray | None] | None = None
         self.safety.reset()
 
     # ------------------------------------------------------------------ helpers
@@ -265,7 +265,7 @@ class SyncController:
         mode = self.safety.update(obs, x, x_dot, lever)
         if mode != "nominal":
             if self.phase != "safe":  # where a brief hold picks up again
-                self._paused = (self.phase, self.s, self.dwell, self._metrics)
+                self._paused = (self.phase, self.s, self.s_dot, self.dwell, self._metrics)
             if self.safety.retreating:
                 self._paused = None
             self.phase = "safe"
@@ -285,8 +285,7 @@ class SyncController:
 
         if self.phase == "safe" and self._paused is not None:
             # a hold without a retreat: carry on where the chaser stopped
-            self.phase, self.s, self.dwell, self._metrics = self._paused
-            self.s_dot = 0.0
+            self.phase, self.s, self.s_dot, self.dwell, self._metrics = self._paused
         self._paused = None
         if self.phase == "safe":
             self.phase = "approach" if dist > g.sync_range_m + 0.5 else "sync"

@@ -56,8 +56,9 @@ NEES_DOF = 3
 RANGE_BINS_M = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 
 __all__ = [
-    "LIBRARY_TARGETS", "RANGE_BINS_M", "SHAPE_SEED", "RunRecord", "by_range", "TargetCase", "fly", "generated_case",
-    "library_case", "make_case_env", "nees", "nees_band", "summarise", "wilson_interval",
+    "LIBRARY_TARGETS", "RANGE_BINS_M", "SHAPE_SEED", "RunRecord", "TargetCase", "by_range",
+    "display_row", "file_case", "fly", "generated_case", "library_case", "make_case_env", "nees",
+    "nees_band", "new_folder", "plot_error_vs_pl", "summarise", "wilson_interval", "write_rows",
 ]
 
 

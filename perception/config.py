@@ -350,6 +350,11 @@ class IntegrityConfig(StrictModel):
     alert_limit_range_m: PositiveFloat = Field(
         5.0, description="beyond this range [m] the alert limit grows in proportion to the range"
     )
+    bias_m: NonNegFloat = Field(
+        0.005, description="1-sigma of the registrations' time-correlated position error at the "
+        "port [m] (model error, ICP bias over a stretch of similar views): a filter that averages "
+        "frames cannot average it away, so it is added to the published position covariance"
+    )
 
 
 class ScanPlanConfig(StrictModel):

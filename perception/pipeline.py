@@ -680,6 +680,9 @@ class TriDAR:
                 kw.update(velocity=fv, angular_velocity=fw, range_rate=float(fp @ fv / max(rng_m, 1e-9)))
                 valid_kw["range_rate"] = True
                 blocks += [slice(3, 6), slice(9, 12)]
+            # The registrations' correlated error does not average down: published on top.
+            fP = fP.copy()
+            fP.flat[0:36:13] += self.pc.integrity.bias_m**2
             for a in blocks:
                 for b in blocks:
                     cov[a, b] = fP[a, b]

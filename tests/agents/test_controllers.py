@@ -3,6 +3,8 @@ short noisy closed loops stay finite, and an invalid pose is never acted on."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -17,6 +19,8 @@ from tridar_env.dynamics import cw_stm, mean_motion
 from tridar_env.env import OBS_DIM, observation_slices
 
 S = observation_slices()
+#: every validity flag set, not degraded (flag 8)
+HEALTHY = np.array([1, 1, 1, 1, 1, 1, 1, 0], dtype=np.float32)
 
 
 def _inside_envelope(env: gym.Env, contact: dict[str, float]) -> None:
@@ -90,7 +94,7 @@ def test_lqr_closed_loop_is_stable_and_feedforward_tracks_the_aim() -> None:
     assert rho < 0.99
     # the chaser exactly on the aim state: the command is the pure feed-forward, and it is small
     obs = np.zeros(OBS_DIM, dtype=np.float32)
-    obs[S["valid"]] = 1.0
+    obs[S["valid"]] = HEALTHY
     obs[S["fuel_fraction"]] = 1.0
     z = 10.0  # below v_max / slope: the aim decelerates at slope * v
     obs[S["port_position_dock"]] = [0.0, 0.0, z]
@@ -109,7 +113,7 @@ def _synced_obs(ctrl: SyncController, w: np.ndarray, w_rel: np.ndarray) -> np.nd
     s = ctrl.g.standoff_m
     p = np.array([0.0, 0.0, s])
     obs = np.zeros(OBS_DIM, dtype=np.float32)
-    obs[S["valid"]] = 1.0
+    obs[S["valid"]] = HEALTHY
     obs[S["fuel_fraction"]] = 1.0
     obs[S["port_position_dock"]] = p
     obs[S["port_velocity_dock"]] = np.cross(w_rel, p)  # the body-frame rate of a target-fixed point
@@ -256,37 +260,34 @@ def test_sync_falls_back_to_approach_where_the_circle_needs_more_than_the_thrust
     a, _ = ctrl.command(obs)
     assert ctrl.phase == phase
     if phase == "approach":  # inertial closing along the line of sight, no centripetal term
-        assert a[2] > 0.0 and ctrl._r_com is None
+        assert a[2] > 0.0
 
 
-def test_sync_keeps_its_circle_for_a_while_after_losing_the_pose() -> None:
+def test_sync_keeps_turning_with_the_target_after_losing_the_pose() -> None:
+    """Synchronised on the hold point, a lost pose keeps the dead-reckoned centre of mass fixed in
+    the turning body frame: the thrust stays the centripetal term, the torque zero, for as long
+    as the loss lasts (no release onto the tangent)."""
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)
     ctrl.phase = "sync"
     w = np.array([0.0, 0.08, 0.0])
-    ctrl(_synced_obs(ctrl, w, np.zeros(3)))
-    r_com = ctrl._r_com.copy()
+    synced = _synced_obs(ctrl, w, np.zeros(3))
+    ctrl(synced)
+    lever = np.diag([1.0, -1.0, -1.0]) @ ctrl.port_lever
+    r_com = synced[S["port_position_dock"]] + np.asarray(cfg.dynamics.chaser.dock_position_m) - lever
+    assert np.linalg.norm(r_com) == pytest.approx(ctrl.hold_com_m)  # on the hold distance
     lost = _bearing_obs(-0.2, 0.0, 0.0)
     lost[S["chaser_rate_body"]] = w
     mass = cfg.dynamics.chaser.dry_mass_kg + cfg.dynamics.chaser.propellant_kg
-    steps = round(ctrl.g.hold_after_loss_s / ctrl.dt)
-    for _ in range(steps):
+    centripetal = -np.cross(w, np.cross(w, r_com)) * mass / cfg.dynamics.chaser.max_thrust_n
+    for _ in range(round(60.0 / ctrl.dt)):  # a minute: three times the old circle's 20 s
         act = ctrl(lost).astype(np.float64)
-        assert ctrl.phase == "safe"
+        assert ctrl.phase == "safe" and ctrl.safety.mode == "avoid"
         np.testing.assert_array_equal(act[3:], 0.0)
-        centripetal = -np.cross(w, np.cross(w, r_com)) * mass / cfg.dynamics.chaser.max_thrust_n
-        np.testing.assert_allclose(act[:3], centripetal, atol=1e-6)
+        np.testing.assert_allclose(act[:3], centripetal, atol=1e-2 * np.linalg.norm(centripetal))
         assert act[:3] @ r_com > 0.0  # toward the target's centre of mass
-    # then the plain rule: brake the closing rate along the line of sight
-    act = ctrl(lost).astype(np.float64)
-    assert act[2] < -0.05 and abs(act[0]) < 1e-6
-    # a chaser still swinging into line (5 deg/s relative) was not synchronised: no circle to keep
-    ctrl = SyncController(cfg)
-    ctrl.phase = "sync"
-    ctrl(_synced_obs(ctrl, w, np.radians([0.0, 5.0, 0.0])))
-    assert ctrl._r_com is None
-    act = ctrl(lost).astype(np.float64)
-    assert act[2] < -0.05 and abs(act[0]) < 1e-6
+    x, _ = ctrl.safety.dr.state(w)
+    np.testing.assert_allclose(x, r_com, atol=1e-3)  # the geometry it keeps
 
 
 def test_sync_closes_only_after_dwelling_matched() -> None:
@@ -294,7 +295,7 @@ def test_sync_closes_only_after_dwelling_matched() -> None:
     ctrl = SyncController(cfg)
     ctrl.phase = "sync"
     obs = np.zeros(OBS_DIM, dtype=np.float32)
-    obs[S["valid"]] = 1.0
+    obs[S["valid"]] = HEALTHY
     obs[S["fuel_fraction"]] = 1.0
     obs[S["port_position_dock"]] = [0.0, 0.0, ctrl.g.standoff_m]
     obs[S["q_dock_port"]] = [0.0, 1.0, 0.0, 0.0]
@@ -334,7 +335,7 @@ def _bearing_obs(range_rate: float, az: float, el: float) -> np.ndarray:
     """Bearing-mode observation with garbage in the (invalid) pose blocks."""
     obs = np.zeros(OBS_DIM, dtype=np.float32)
     obs[S["mode_onehot"]] = [1.0, 0.0, 0.0]
-    obs[S["valid"]] = [1, 1, 1, 0, 0, 0, 0]
+    obs[S["valid"]] = [1, 1, 1, 0, 0, 0, 0, 0]
     obs[S["port_position_dock"]] = [5.0, -3.0, 2.0]  # must be ignored: not valid
     obs[S["port_velocity_dock"]] = [0.5, 0.5, -0.5]
     obs[S["q_dock_port"]] = [1.0, 0.0, 0.0, 0.0]
@@ -377,16 +378,22 @@ def test_lqr_restarts_its_aim_after_loss_of_track() -> None:
     cfg = load_config("final_approach", env__perception="truth")
     ctrl = LQRController(cfg)
     obs = np.zeros(OBS_DIM, dtype=np.float32)
-    obs[S["valid"]] = 1.0
+    obs[S["valid"]] = HEALTHY
     obs[S["fuel_fraction"]] = 1.0
     obs[S["port_position_dock"]] = [0.0, 0.0, 25.0]
     for _ in range(50):
         ctrl(obs)
     assert ctrl.z_aim < 24.0
-    ctrl(_bearing_obs(-0.05, 0.0, 0.0))
-    assert np.isnan(ctrl.z_aim)
+    for _ in range(round(2.0 / ctrl.dt)):  # lost for 2 s
+        ctrl(_bearing_obs(-0.05, 0.0, 0.0))
+        assert np.isnan(ctrl.z_aim) and ctrl.safety.mode == "avoid"
     obs[S["port_position_dock"]] = [0.0, 0.0, 18.0]
+    resume = round(ctrl.safety.g.resume_s / ctrl.dt)
+    for _ in range(resume - 1):  # the track proves itself (1 s) before the approach resumes
+        ctrl(obs)
+        assert np.isnan(ctrl.z_aim) and ctrl.safety.mode == "avoid"
     ctrl(obs)
+    assert ctrl.safety.mode == "nominal"
     assert 17.9 < ctrl.z_aim < 18.0  # from the new estimate, not the stale aim
 
 
@@ -436,3 +443,223 @@ def test_sync_docks_tumbling_target_on_the_full_pipeline() -> None:
     assert r.contact["angular_rate_deg_s"] < 0.08
     assert r.contact["misalignment_deg"] < 1.5
     assert r.rms_pos_err_m < 0.05
+
+
+# ---------------------------------------------------------------------- integrity: lost or degraded track
+_POSE_BLOCKS = ("port_position_dock", "port_velocity_dock", "q_dock_port", "omega_port_dock", "range",
+                "range_rate", "bearing", "protection_level", "alert_limit")
+
+
+class _TrackFault(gym.Wrapper):
+    """Blank the state vector (a sensor blackout: every flag off, zeros in the blocks), or mark it
+    degraded with its numbers kept, from when the dock first comes within ``start_m`` of the port
+    (truth, along the port axis) for ``duration_s``. Deterministic, and cheap on truth perception."""
+
+    def __init__(self, env: gym.Env, start_m: float, duration_s: float = np.inf,
+                 kind: str = "blackout") -> None:
+        super().__init__(env)
+        self.start_m, self.duration_s, self.kind = start_m, duration_s, kind
+        self.t0: float | None = None
+
+    def reset(self, **kw):
+        self.t0 = None
+        return self.env.reset(**kw)
+
+    def step(self, action):
+        obs, r, term, trunc, info = self.env.step(action)
+        if self.t0 is None and info["contact"].axial_distance <= self.start_m:
+            self.t0 = info["t"]
+        if self.t0 is not None and info["t"] - self.t0 < self.duration_s:
+            obs = obs.copy()
+            if self.kind == "blackout":
+                obs[S["valid"]] = 0.0
+                obs[S["mode_onehot"]] = [0.0, 1.0, 0.0]  # search
+                for name in _POSE_BLOCKS:
+                    obs[S[name]] = 0.0
+            else:
+                obs[S["valid"]][7] = 1.0
+                obs[S["protection_level"]] = 0.3
+        return obs, r, term, trunc, info
+
+
+_MISSIONS = {"glideslope": ("TriDAR/FinalApproach-v0", GlideslopeController, 1),
+             "lqr": ("TriDAR/FinalApproach-v0", LQRController, 1),
+             "sync": ("TriDAR/TumblingTarget-v0", SyncController, 3)}
+
+
+def _fly_with_fault(name: str, start_m: float, duration_s: float = np.inf, kind: str = "blackout",
+                    after_s: float = 150.0):
+    """Fly ``name`` on truth with a track fault; stop ``after_s`` into the fault or at the end."""
+    env_id, make, seed = _MISSIONS[name]
+    env = _TrackFault(gym.make(env_id, perception="truth"), start_m, duration_s, kind)
+    ctrl = make(env.unwrapped.cfg)
+    ctrl.reset()
+    obs, info = env.reset(seed=seed)
+    while True:
+        obs, _, term, trunc, info = env.step(ctrl(obs))
+        if term or trunc or (env.t0 is not None and info["t"] - env.t0 >= after_s):
+            return env, ctrl, info
+
+
+@pytest.mark.parametrize("start_m", [8.0, 3.0])
+@pytest.mark.parametrize("name", ["glideslope", "lqr", "sync"])
+def test_lost_track_near_the_port_ends_in_a_hold_or_retreat(name: str, start_m: float) -> None:
+    """A blackout from 8 m or 3 m: brake, hold, back away to the hold point; no collision.
+
+    Measured on truth after 150 s of blackout: glideslope holds at 7.75 m (from 8 m) and 5.00 m
+    (retreated from 3 m), 1-3 cm off the axis; LQR 7.57 m and 5.00 m; sync keeps turning with the
+    target 9.4 m and 3.8 m from its centre of mass (hold distance 3.86 m).
+    """
+    env, ctrl, info = _fly_with_fault(name, start_m)
+    assert env.t0 is not None, "the approach never reached the fault"
+    assert info["termination"] == "", info["termination"]  # no collision, no corridor exit
+    assert ctrl.safety.mode == "avoid"
+    c = info["contact"]
+    if name == "sync":  # the target tumbles: distances and speeds between the centres of mass
+        r, v = info["truth_r_lvlh"], info["truth_v_lvlh"]
+        dist = float(np.linalg.norm(r))
+        assert dist >= min(ctrl.hold_com_m, start_m) - 0.2
+        assert abs(float(r @ v) / dist) < 0.01
+    else:
+        hold = ctrl.safety.g.hold_range_m
+        assert c.axial_distance >= min(start_m - 0.5, hold - 0.1)
+        assert abs(c.closing_speed) < 0.005
+        assert c.lateral_offset < 0.1
+
+
+@pytest.mark.parametrize("kind", ["blackout", "degraded"])
+@pytest.mark.parametrize("name", ["glideslope", "lqr", "sync"])
+def test_approach_resumes_and_docks_when_the_track_comes_back(name: str, kind: str) -> None:
+    """A minute of lost (or degraded) track from 3 m: retreat, then approach again and dock."""
+    env, ctrl, info = _fly_with_fault(name, 3.0, duration_s=60.0, kind=kind, after_s=np.inf)
+    assert info["termination"] == "docked"
+    _inside_envelope(env, dataclasses.asdict(info["contact"]))
+    assert info["t"] - env.t0 > 90.0  # it did wait and come back, not sail through
+
+
+@pytest.mark.parametrize("name", ["glideslope", "lqr", "sync"])
+def test_a_track_lost_in_the_last_decimetres_on_axis_coasts_to_a_docking(name: str) -> None:
+    env, ctrl, info = _fly_with_fault(name, 0.35, after_s=np.inf)
+    assert info["termination"] == "docked"
+    _inside_envelope(env, dataclasses.asdict(info["contact"]))
+
+
+@pytest.mark.parametrize("name", ["glideslope", "lqr"])
+@pytest.mark.parametrize(("start_m", "kind"), [(0.8, "blackout"), (0.35, "degraded")])
+def test_a_track_lost_before_the_commit_range_or_degraded_in_it_aborts(
+    name: str, start_m: float, kind: str
+) -> None:
+    """Lost at 0.8 m (outside the 0.4 m commit range), or degraded at 0.35 m: back away."""
+    env, ctrl, info = _fly_with_fault(name, start_m, kind=kind, after_s=200.0)
+    assert info["termination"] == ""
+    assert ctrl.safety.retreating
+    hold = ctrl.safety.g.hold_range_m + (0.3 if kind == "degraded" else 0.0)  # + protection level
+    assert info["contact"].axial_distance == pytest.approx(hold, abs=0.1)
+
+
+def _approach_obs(z: float, closing: float, lateral: float = 0.0) -> np.ndarray:
+    """A healthy pose on the final approach: port ``z`` ahead, closing at ``closing``."""
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+    obs[S["mode_onehot"]] = [0.0, 0.0, 1.0]
+    obs[S["valid"]] = HEALTHY
+    obs[S["port_position_dock"]] = [lateral, 0.0, z]
+    obs[S["port_velocity_dock"]] = [0.0, 0.0, -closing]
+    obs[S["q_dock_port"]] = [1.0, 0.0, 0.0, 0.0]
+    obs[S["range"]] = z
+    obs[S["range_rate"]] = -closing
+    obs[S["fuel_fraction"]] = 1.0
+    obs[S["protection_level"]] = 0.03
+    obs[S["alert_limit"]] = 0.08
+    return obs
+
+
+@pytest.mark.parametrize("make", [GlideslopeController, LQRController])
+def test_a_degraded_pose_is_not_flown_in_on(make: type) -> None:
+    """Degraded (flag 8) at 2 m: the numbers are there but the command brakes the closing."""
+    cfg = load_config("final_approach", env__perception="truth")
+    ctrl = make(cfg)
+    healthy = _approach_obs(2.0, 0.05)  # slower than the glideslope: a healthy pose speeds up
+    for _ in range(5):
+        ctrl(healthy)
+    assert ctrl(healthy)[2] > 0.0 and ctrl.safety.mode == "nominal"
+    degraded = healthy.copy()
+    degraded[S["valid"]][7] = 1.0
+    degraded[S["protection_level"]] = 0.2
+    act = ctrl(degraded).astype(np.float64)
+    assert ctrl.safety.mode == "avoid" and not ctrl.safety.retreating  # brake and hold first
+    assert act[2] < -0.1  # p'' = -a: decelerates the closing port
+    np.testing.assert_allclose(act[:2], 0.0, atol=5e-3)  # (the CW model's Coriolis term)
+    # the degraded estimate's depth is used (along the axis it is sound), and while it still says
+    # closing the command keeps braking
+    dt = ctrl.safety.dt
+    for _ in range(round(2.0 / dt)):
+        act = ctrl(degraded)
+    assert ctrl.safety.port(np.zeros(3))[0][2] == pytest.approx(2.0, abs=1e-3)
+    assert act[2] < 0.0 and not ctrl.safety.retreating
+    for _ in range(round(ctrl.safety.g.hold_s / dt)):
+        ctrl(degraded)
+    assert ctrl.safety.retreating  # the loss outlasted hold_s: back to the hold point
+    # healthy again: the approach resumes after the track has proved itself
+    for _ in range(round(ctrl.safety.g.resume_s / dt)):
+        ctrl(healthy)
+    assert ctrl.safety.mode == "nominal"
+
+
+@pytest.mark.parametrize("make", [GlideslopeController, LQRController])
+def test_in_the_commit_range_only_a_clean_loss_coasts(make: type) -> None:
+    """At 0.3 m closing at 0.07 m/s on the axis: a blackout coasts into contact (zero thrust), a
+    degraded pose or a lost track 0.1 m off the axis aborts (backs away at once)."""
+    cfg = load_config("final_approach", env__perception="truth")
+    lost = _approach_obs(0.3, 0.07)
+    lost[S["valid"]] = 0.0
+    lost[S["port_position_dock"]] = 0.0
+    lost[S["port_velocity_dock"]] = 0.0
+    for lateral, kind, coast in [(0.0, "blackout", True), (0.0, "degraded", False), (0.1, "blackout", False)]:
+        ctrl = make(cfg)
+        healthy = _approach_obs(0.3, 0.07, lateral)
+        for _ in range(3):
+            ctrl(healthy)
+        if kind == "degraded":
+            bad = healthy.copy()
+            bad[S["valid"]][7] = 1.0
+        else:
+            bad = lost
+        act = ctrl(bad).astype(np.float64)
+        if coast:
+            assert ctrl.safety.mode == "commit"
+            np.testing.assert_allclose(act, 0.0, atol=1e-6)
+        else:
+            assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating
+            assert act[2] < -0.1
+
+
+def test_sync_brakes_on_a_degraded_pose_close_in() -> None:
+    cfg = load_config("tumbling_target", env__perception="truth")
+    ctrl = SyncController(cfg)
+    obs = _synced_obs(ctrl, np.zeros(3), np.zeros(3))
+    obs[S["port_position_dock"]] = [0.0, 0.0, 1.0]
+    obs[S["port_velocity_dock"]] = [0.0, 0.0, -0.05]
+    for _ in range(3):
+        ctrl(obs)
+    assert ctrl.safety.mode == "nominal"
+    obs[S["valid"]][7] = 1.0
+    act = ctrl(obs).astype(np.float64)
+    assert ctrl.phase == "safe" and ctrl.safety.mode == "avoid"
+    x, _ = ctrl.safety.dr.state(np.zeros(3))  # the target's centre of mass from the chaser's
+    assert act[:3] @ x < -0.1 * np.linalg.norm(x)  # thrust away from the target
+    np.testing.assert_array_equal(act[3:], 0.0)
+
+
+def test_full_pipeline_blackout_from_8_m_holds_without_collision() -> None:
+    """The TriDAR's own blackout fault (frames from ~8 m to the port on): the glideslope brakes
+    and holds where it is (measured: 8.8 m, 0.5 m off the axis after 110 s, closing < 1 mm/s)."""
+    env = gym.make("TriDAR/FinalApproach-v0", config={"sensor__faults__blackout_start_frame": 530,
+                                                      "sensor__faults__blackout_frames": 10_000})
+    ctrl = GlideslopeController(env.unwrapped.cfg)
+    obs, _ = env.reset(seed=0)
+    for _ in range(800):
+        obs, _, term, trunc, info = env.step(ctrl(obs))
+        assert not (term or trunc), info["termination"]
+    assert ctrl.safety.mode == "avoid" and info["mode"] != "tracking"
+    c = info["contact"]
+    assert c.axial_distance > 7.0 and abs(c.closing_speed) < 0.01

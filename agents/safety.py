@@ -30,8 +30,9 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     healthy pose (and, after an avoidance, healthy for as long as it was lost, at most and after
     a retreat ``resume_s``): the controller flies its law.
 ``blind``
-    no trusted pose yet this episode (acquisition): nothing to dead-reckon from; the controller's
-    own loss-of-pose rule applies (brake a closing range rate along the line of sight, else coast).
+    no pose yet this episode (acquisition): nothing to dead-reckon from; the controller's own
+    loss-of-pose rule applies (brake a closing range rate along the line of sight, else coast). A
+    degraded pose before any healthy one starts the dead reckoning (for avoidance only).
 ``commit``
     the pose was lost (invalid, not degraded) while the last healthy state was inside
     ``commit_range_m`` of the port, within ``commit_lateral_m`` of the axis, closing inside the
@@ -275,6 +276,11 @@ class CollisionAvoidance:
             self._pl = 0.0
             return self.mode
         self._healthy = 0
+        if degraded and not self.has_fix and x_dot is not None and valid[_VEL] > 0.5:
+            # no healthy pose yet: a degraded one is still the best state to brake and back away on
+            self.dr.fix(x, x_dot, w)
+            self.has_fix = True
+            self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
         if not self.has_fix:
             self.mode = "blind"
             return self.mode

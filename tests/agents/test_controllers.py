@@ -663,3 +663,14 @@ def test_full_pipeline_blackout_from_8_m_holds_without_collision() -> None:
     assert ctrl.safety.mode == "avoid" and info["mode"] != "tracking"
     c = info["contact"]
     assert c.axial_distance > 7.0 and abs(c.closing_speed) < 0.01
+
+
+@pytest.mark.parametrize("make", [GlideslopeController, LQRController])
+def test_a_pose_degraded_from_the_start_is_braked_on_not_coasted_on(make: type) -> None:
+    """No healthy pose yet, only degraded ones: not flown in on, but not ignored either (a coast
+    at the initial closing speed would end on the target); the chaser brakes on it."""
+    ctrl = make(load_config("final_approach", env__perception="truth"))
+    degraded = _approach_obs(4.0, 0.1)
+    degraded[S["valid"]][7] = 1.0
+    act = ctrl(degraded).astype(np.float64)
+    assert ctrl.safety.mode == "avoid" and act[2] < -0.1

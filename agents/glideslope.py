@@ -15,13 +15,15 @@ Integrity (:mod:`agents.safety`, DESIGN.md "Integrity"): the law flies only a *h
 (position and velocity valid, not degraded). The controller dead-reckons the port from its last
 healthy pose with its own commanded accelerations (through the CW model when its docking frame is
 constant in LVLH, else in free fall with the gyro), and when the pose is invalid or
-degraded it brakes the closing speed to zero and holds, or, inside ``safety.hold_range_m`` (5 m)
-of the port, retreats along the docking axis to that hold point at ``safety.v_retreat``; lateral
-motion is nulled. It never coasts into the target on a lost track. The one exception is a
+degraded it brakes the closing speed to zero and holds; when no healthy pose has come back within
+``safety.hold_s`` (3 s) and it is inside ``safety.hold_range_m`` (5 m) of the port, it retreats
+along the docking axis to that hold point at ``safety.v_retreat``; lateral motion is nulled. It
+never coasts into the target on a lost track. The one exception is a
 healthy pose lost (not degraded) in the last ``safety.commit_range_m`` (0.4 m), on the axis and
 inside the envelope's closing speeds: braking there would turn a docking into a too-slow contact,
-so the chaser coasts in. A degraded pose there aborts (backs away). The approach resumes after
-``safety.resume_s`` of healthy poses. Before the first healthy pose of an episode (acquisition)
+so the chaser coasts in. A degraded pose there, or a lost one off the axis, aborts (backs away at
+once). The approach resumes once the pose has been healthy for as long as it was lost (at most,
+and after a retreat, ``safety.resume_s``). Before the first healthy pose of an episode (acquisition)
 there is nothing to dead-reckon: a closing range rate is braked along the line of sight (known
 from the bearing) when it is measured, else the chaser coasts.
 """

@@ -30,11 +30,13 @@ Integrity (:mod:`agents.safety`, DESIGN.md "Integrity"): the law flies only a *h
 (position and velocity valid, not degraded). From the last healthy pose the controller
 dead-reckons the port with its own saturated commands (through ``A``, ``B`` when the docking frame
 is constant, else in free fall with the gyro); on an invalid or degraded pose it brakes the closing
-speed to zero and holds, or inside ``safety.hold_range_m`` (5 m) retreats along the docking axis
-to that hold point at ``safety.v_retreat``, never closing in; only a healthy pose lost in the last
-``safety.commit_range_m`` (0.4 m), on the axis and inside the envelope's closing speeds, coasts
-into contact (a degraded one there backs away). The approach resumes after ``safety.resume_s`` of
-healthy poses, the aim point restarting from the new estimate. Before the first healthy pose of
+speed to zero and holds, and when the loss outlasts ``safety.hold_s`` (3 s) retreats, inside
+``safety.hold_range_m`` (5 m), along the docking axis to that hold point at ``safety.v_retreat``,
+never closing in; only a healthy pose lost in the last ``safety.commit_range_m`` (0.4 m), on the
+axis and inside the envelope's closing speeds, coasts into contact (a degraded one there, or a
+lost one off the axis, backs away at once). The approach resumes once the pose has been healthy
+for as long as it was lost (at most, and after a retreat, ``safety.resume_s``), the aim point
+restarting from the new estimate. Before the first healthy pose of
 an episode there is nothing to dead-reckon: a closing range rate is braked along the line of sight
 (bearing) when both are valid, else the chaser coasts (:func:`loss_of_track_accel`).
 """

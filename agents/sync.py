@@ -288,8 +288,10 @@ class SyncController:
             self.phase, self.s, self.s_dot, self.dwell, self._metrics = self._paused
         self._paused = None
         if self.phase == "safe":
+            # after a retreat (or from acquisition) the close starts again from the hold point: a
+            # hold point left near the port would pull the chaser back in and stop it there
             self.phase = "approach" if dist > g.sync_range_m + 0.5 else "sync"
-            self.s = min(max(self.s, 0.0), g.standoff_m) if self.phase == "sync" else g.standoff_m
+            self.s = g.standoff_m
             self.s_dot = 0.0
         if self.phase == "approach" and dist <= g.sync_range_m:
             self.phase = "sync"

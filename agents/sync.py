@@ -70,12 +70,15 @@ Phases (:attr:`SyncController.phase`):
     ``safety.v_retreat`` to the hold distance (the ``standoff_m`` hold point's, at least the
     keep-out sphere). A degraded pose's depth along the docking axis corrects the dead
     reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
-    envelope's closing speed coasts into contact in the turning frame (a degraded one there
-    backs away). Before any healthy pose (acquisition) a closing range rate is braked along the
-    line of sight (bearing) when both are valid, else the chaser coasts. On a healthy pose again
-    (for ``safety.resume_s``) after a hold that did not turn into a retreat, the controller picks up
-    its phase, hold point and dwell where it stopped; after a retreat it re-enters ``approach``
-    or ``sync`` by range and must dwell again before closing.
+    envelope's closing speed coasts into contact in the turning frame, its torque the target's
+    own angular acceleration (Euler's equations run open loop from the last fix) so that the
+    relative rate stays matched (a degraded one there backs away). Before any pose (acquisition)
+    a closing range rate is braked along the line of sight (bearing) when both are valid, else
+    the chaser coasts. On a healthy pose again (for as long as it was lost, at most
+    ``safety.resume_s``) after a hold that did not turn into a retreat, the controller picks up its
+    phase, hold point and dwell where it stopped; after a retreat it re-enters ``approach`` or
+    ``sync`` by range with the hold point back at ``standoff_m`` and must dwell again before
+    closing.
 """
 
 from __future__ import annotations

@@ -86,7 +86,8 @@ class GlideslopeController:
         env = cfg.env.envelope
         dt = cfg.env.frame_period_s * cfg.env.frame_skip
         R = dock_frame_in_lvlh(cfg)  # constant docking frame: dead-reckon with the CW model
-        model = None if R is None else docking_frame_model(mean_motion(cfg.dynamics.orbit.altitude_m), dt, R)
+        n = mean_motion(cfg.dynamics.orbit.altitude_m)
+        model = None if R is None else docking_frame_model(n, dt, R)
         self.safety = CollisionAvoidance(
             dt, self.dock, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
             model=model, lever=port_lever_dock(cfg) if model is not None else (0.0, 0.0, 0.0),

@@ -193,7 +193,8 @@ class LQRController:
         self._B_pinv = np.linalg.pinv(self.B)
         env = cfg.env.envelope
         self.safety = CollisionAvoidance(
-            self.dt, ch.dock_position_m, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), g.safety,
+            self.dt, ch.dock_position_m, (env.axial_speed_min_m_s, env.axial_speed_max_m_s),
+            g.safety,
             model=(self.A, self.B) if self.R is not None else None,
             lever=port_lever_dock(cfg) if self.R is not None else (0.0, 0.0, 0.0),
         )
@@ -258,7 +259,9 @@ class LQRController:
         mass = self._mass(obs)
         thrust = saturate(a * mass / self.max_thrust)
         applied = thrust * self.max_thrust / mass
-        self.safety.applied(self.R.T @ applied if self.thrust_frame == "lvlh" and self.R is not None else applied)
+        if self.thrust_frame == "lvlh" and self.R is not None:
+            applied = self.R.T @ applied  # back into the docking frame
+        self.safety.applied(applied)
         if self.six_dof:
             thrust = np.concatenate([thrust, np.zeros(3)])  # no attitude control: use sync
         return thrust.astype(np.float32)

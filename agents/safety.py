@@ -120,7 +120,9 @@ class DeadReckoning:
     """
 
     def __init__(
-        self, model: tuple[FloatArray, FloatArray] | None = None, lever: npt.ArrayLike = (0.0, 0.0, 0.0)
+        self,
+        model: tuple[FloatArray, FloatArray] | None = None,
+        lever: npt.ArrayLike = (0.0, 0.0, 0.0),
     ) -> None:
         self.model = model
         self._c = np.concatenate([np.asarray(lever, dtype=np.float64).reshape(3), np.zeros(3)])
@@ -154,7 +156,7 @@ class DeadReckoning:
             s = A @ (self._c - np.concatenate([self.X, self.V])) + B @ a_body - self._c
             self.X, self.V = -s[:3], -s[3:]
             return
-        # a body-fixed thrust turns with the body over the step: its mean direction is the midpoint's
+        # a body-fixed thrust turns with the body over the step: mean direction at the midpoint
         half = rotvec_matrix(np.asarray(w, dtype=np.float64) * (0.5 * dt))
         a = self.R @ half @ a_body
         self.X = self.X + self.V * dt - 0.5 * a * dt * dt
@@ -258,10 +260,9 @@ class CollisionAvoidance:
         if pose and not degraded:
             assert x is not None and x_dot is not None
             if self.has_fix:  # average the estimate's velocity noise through the model
-                x_dot = (x_dot_pred := self.dr.state(w)[1]) + self.g.k_fix_velocity * (x_dot - x_dot_pred)
-            self.dr.fix(x, x_dot, w)
-            self.has_fix = True
-            self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
+                x_dot_pred = self.dr.state(w)[1]
+                x_dot = x_dot_pred + self.g.k_fix_velocity * (x_dot - x_dot_pred)
+            self._take_fix(x, x_dot, w, port_offset)
             self._healthy += 1
             # the track proves itself for as long as it was lost, up to resume_s
             prove = self.g.resume_s if self.retreating else min(self.g.resume_s, self._lost_s)
@@ -278,9 +279,7 @@ class CollisionAvoidance:
         self._healthy = 0
         if degraded and not self.has_fix and x_dot is not None and valid[_VEL] > 0.5:
             # no healthy pose yet: a degraded one is still the best state to brake and back away on
-            self.dr.fix(x, x_dot, w)
-            self.has_fix = True
-            self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
+            self._take_fix(x, x_dot, w, port_offset)
         if not self.has_fix:
             self.mode = "blind"
             return self.mode
@@ -293,7 +292,8 @@ class CollisionAvoidance:
                 xr_dot[2] += self.g.k_fix_velocity * (x_dot[2] - xr_dot[2])
             self.dr.reset_to(xr, xr_dot, w)
             self._pl = float(obs[_S["protection_level"]][0])
-        if not degraded and (self.mode == "commit" or (self.mode == "nominal" and self._committable(w))):
+        committed = self.mode == "commit" or (self.mode == "nominal" and self._committable(w))
+        if not degraded and committed:
             self.mode = "commit"
             return self.mode
         if self.mode in ("nominal", "commit") and self.port(w)[0][2] <= self.g.commit_range_m:
@@ -305,6 +305,13 @@ class CollisionAvoidance:
         self.mode = "avoid"
         self._avoided = True
         return self.mode
+
+    def _take_fix(
+        self, x: FloatArray, x_dot: FloatArray, w: FloatArray, port_offset: FloatArray | None
+    ) -> None:
+        self.dr.fix(x, x_dot, w)
+        self.has_fix = True
+        self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
 
     def _committable(self, w: FloatArray) -> bool:
         """The last healthy state (one step on) may coast into contact (module docstring)."""

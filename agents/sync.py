@@ -191,7 +191,7 @@ class SyncController:
         self._cone_tan = float(np.tan(np.radians(self.g.approach_cone_deg)))
         # hold distance between the centres of mass: the standoff hold point's, outside keep-out
         self.hold_com_m = max(
-            float(np.linalg.norm(self.port_lever + (self.g.standoff_m + self.d[2]) * np.array([0.0, 0.0, 1.0]))),
+            float(np.linalg.norm(self.port_lever + [0.0, 0.0, self.g.standoff_m + self.d[2]])),
             self.keep_out_m,
         )
         env = cfg.env.envelope
@@ -256,7 +256,9 @@ class SyncController:
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         p = obs[_S["port_position_dock"]].astype(np.float64)
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
-        R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64)) if valid[5] > 0.5 else np.eye(3)
+        R_dp = np.eye(3)
+        if valid[5] > 0.5:
+            R_dp = quat_to_matrix(obs[_S["q_dock_port"]].astype(np.float64))
         w_rel = obs[_S["omega_port_dock"]].astype(np.float64)
         # the safety monitor's reference point: the target's centre of mass from the chaser's
         x = x_dot = lever = None

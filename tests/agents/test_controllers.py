@@ -614,7 +614,8 @@ def test_in_the_commit_range_only_a_clean_loss_coasts(make: type) -> None:
     lost[S["valid"]] = 0.0
     lost[S["port_position_dock"]] = 0.0
     lost[S["port_velocity_dock"]] = 0.0
-    for lateral, kind, coast in [(0.0, "blackout", True), (0.0, "degraded", False), (0.1, "blackout", False)]:
+    cases = [(0.0, "blackout", True), (0.0, "degraded", False), (0.1, "blackout", False)]
+    for lateral, kind, coast in cases:
         ctrl = make(cfg)
         healthy = _approach_obs(0.3, 0.07, lateral)
         for _ in range(3):

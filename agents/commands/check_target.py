@@ -6,7 +6,8 @@ a. **validation**: the mesh is loaded as the env will load it (:func:`perception
    a refusal is one line and exit code 2), with its size, face count, the port's distance to the
    surface and the symmetries found (poses a full view cannot tell apart);
 b. **PAH database**: build time of the acquisition database (``cfg.pipeline.pah``);
-c. **observability map**: at ranges along the nominal approach, the predicted 1-sigma bound of one
+c. **observability map**: at distances to go along the nominal approach (docking interface to port;
+   the sensor sits behind the interface, where the chaser mounts it), the predicted 1-sigma bound of one
    tracking frame at the docking port (position) and on the attitude, for the region the mission's
    scan strategy picks and for the one the observability planner would pick
    (:mod:`perception.observability`), which axes are unobserved, and whether the predicted
@@ -33,10 +34,11 @@ from typing import Any
 
 from agents.cli import command
 
-#: Ranges to the port along the nominal approach for the observability map [m].
+#: Distances from the chaser's docking interface to the port along the nominal approach for the
+#: observability map [m] (the sensor sits behind the interface: its range to the port is larger).
 MAP_RANGES_M = (30.0, 20.0, 10.0, 5.0, 3.0, 2.0, 1.0)
 #: "Close in" for the verdict: inside this range an unobserved axis is a problem [m].
-CLOSE_IN_M = 5.0
+CLOSE_IN_M = 5.0  # docking interface to port [m]
 
 
 @command("check-target", "readiness report for your own spacecraft mesh: validation, symmetries, "
@@ -130,9 +132,11 @@ def describe_target(target: Any) -> list[str]:
 # --------------------------------------------------------------------------- (c) observability
 @dataclass
 class MapRow:
-    """The observability map at one range."""
+    """The observability map at one distance to go (``range_m``: docking interface to port;
+    ``sensor_range_m``: sensor to port)."""
 
     range_m: float
+    sensor_range_m: float
     region: str
     port_bound_m: float
     attitude_bound_deg: float
@@ -154,9 +158,10 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
     """Predicted single-frame bounds at the port along the nominal approach.
 
     Args:
-        cfg: the mission config (sensor, pipeline strategies, integrity).
+        cfg: the mission config (sensor, pipeline strategies, integrity, chaser mount).
         target: the loaded target.
-        ranges_m: sensor-to-port ranges [m].
+        ranges_m: docking-interface-to-port distances [m]; the sensor is placed where the
+            chaser's mount puts it (``dynamics.chaser``), on the docking axis.
 
     Returns:
         The rows and the name of the strategy the mission uses (``range`` or ``observability``).
@@ -177,9 +182,14 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
     planner = ScanPlanner(target, sensor, model, pc.scan_plan, pc.icp.noise_floor_fraction)
     k = integrity_factor(pc.integrity.risk)
     planned = pc.scan_plan.mode == "observability"
+    ch = cfg.dynamics.chaser
+    # The port seen from the chaser's TriDAR: the docking axis is offset from the sensor (as in
+    # the pipeline bench's V-bar replay).
+    off = np.asarray(ch.dock_position_m, dtype=float) - np.asarray(ch.sensor_position_m, dtype=float)
     rows: list[MapRow] = []
     for r in ranges_m:
-        T = approach_pose(cfg, target, float(r))
+        T = approach_pose(cfg, target, float(r) + off[2], (off[0], off[1]))
+        r_sensor = float(np.linalg.norm(T[:3, :3] @ target.T_target_port[:3, 3] + T[:3, 3]))
         default = logic.region_for_range(float(np.linalg.norm(T[:3, 3])))
         region = target.regions.get(default) or target.regions["whole"]
         base = predict_information(target, sensor, model, T, region, 0, pc.scan_plan.rays,
@@ -188,10 +198,10 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
         # The pipeline's planner steps in where the strategy's region leaves axes unobserved.
         used = best if planned and base.degenerate_axes else base
         rows.append(MapRow(
-            range_m=float(r), region=used.region.name, port_bound_m=used.port_bound_m,
+            range_m=float(r), sensor_range_m=r_sensor, region=used.region.name, port_bound_m=used.port_bound_m,
             attitude_bound_deg=math.degrees(used.attitude_bound_rad), weak_axes=list(used.degenerate_axes),
             n_hits=int(used.n_hits), predicted_pl_m=k * used.port_bound_m,
-            alert_limit_m=alert_limit(float(r), pc.integrity.alert_limit_m, pc.integrity.alert_limit_range_m),
+            alert_limit_m=alert_limit(r_sensor, pc.integrity.alert_limit_m, pc.integrity.alert_limit_range_m),
             planner_region=best.region.name, planner_port_bound_m=best.port_bound_m,
             planner_attitude_bound_deg=math.degrees(best.attitude_bound_rad),
             planner_weak_axes=list(best.degenerate_axes),
@@ -223,7 +233,8 @@ def map_table(rows: list[MapRow]) -> str:
     from agents.benchmarks.timing import format_table
 
     return format_table([{
-        "range [m]": f"{r.range_m:g}",
+        "to go [m]": f"{r.range_m:g}",
+        "sensor range [m]": f"{r.sensor_range_m:.2f}",
         "region": r.region,
         "hits": r.n_hits,
         "port 1-sigma [mm]": _mm(r.port_bound_m),
@@ -272,7 +283,7 @@ def plot_map(path: Path, rows: list[MapRow], title: str) -> Path:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.invert_xaxis()
-        ax.set_xlabel("range to the port [m]")
+        ax.set_xlabel("docking interface to port [m]")
         ax.grid(True, which="both", alpha=0.2)
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=10)

@@ -66,7 +66,7 @@ def test_port_without_axis_refused(tmp_path, capsys):
 
 
 def _row(r: float, weak: list[str], planner_weak: list[str], pl: float = 0.01) -> MapRow:
-    return MapRow(range_m=r, region="port", port_bound_m=pl / 5, attitude_bound_deg=0.1, weak_axes=weak,
+    return MapRow(range_m=r, sensor_range_m=r + 2.1, region="port", port_bound_m=pl / 5, attitude_bound_deg=0.1, weak_axes=weak,
                   n_hits=300, predicted_pl_m=pl, alert_limit_m=0.08, planner_region="port",
                   planner_port_bound_m=pl / 5, planner_attitude_bound_deg=0.1, planner_weak_axes=planner_weak)
 

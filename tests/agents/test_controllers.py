@@ -675,3 +675,35 @@ def test_a_pose_degraded_from_the_start_is_braked_on_not_coasted_on(make: type) 
     degraded[S["valid"]][7] = 1.0
     act = ctrl(degraded).astype(np.float64)
     assert ctrl.safety.mode == "avoid" and act[2] < -0.1
+
+
+def test_dead_reckoning_follows_a_fixed_point_from_a_turning_chaser_and_the_cw_model() -> None:
+    """Free fall: with no thrust a point fixed in inertial space turns the other way in the body
+    frame of a chaser turning at ``w``. CW model: the propagation is the LQR's own ``A, B``."""
+    from agents.safety import DeadReckoning, rotvec_matrix
+
+    w = np.array([0.01, 0.05, -0.02])
+    x0 = np.array([0.3, -0.2, 4.0])
+    dr = DeadReckoning()
+    dr.fix(x0, -np.cross(w, x0), w)  # inertially at rest
+    dt, n = 0.2, 300
+    for _ in range(n):
+        dr.predict(np.zeros(3), w, dt)
+    x, x_dot = dr.state(w)
+    np.testing.assert_allclose(x, rotvec_matrix(w * n * dt).T @ x0, atol=1e-9)
+    np.testing.assert_allclose(x_dot, -np.cross(w, x), atol=1e-12)
+    # a constant body thrust on a chaser that does not turn: x'' = -a
+    dr.fix(x0, np.zeros(3), np.zeros(3))
+    a = np.array([0.0, 0.0, -0.01])
+    for _ in range(50):
+        dr.predict(a, np.zeros(3), dt)
+    np.testing.assert_allclose(dr.state(np.zeros(3))[0], x0 - 0.5 * a * (50 * dt) ** 2, atol=1e-12)
+    # CW in the LVLH-fixed docking frame: the chaser's relative state [-x, -x'] goes through A, B
+    ctrl = LQRController(load_config("final_approach", env__perception="truth"))
+    dr = ctrl.safety.dr
+    dr.fix(x0, np.array([0.0, 0.0, -0.05]), np.zeros(3))
+    dr.predict(a, np.zeros(3), ctrl.dt)
+    c = np.concatenate([ctrl.safety.lever, np.zeros(3)])
+    s0 = -np.concatenate([x0, [0.0, 0.0, -0.05]])
+    expected = ctrl.A @ (s0 + c) + ctrl.B @ a - c
+    np.testing.assert_allclose(-np.concatenate(dr.state(np.zeros(3))), expected, atol=1e-12)

@@ -350,7 +350,7 @@ def verdict(rows: list[MapRow], campaign: dict[str, dict[str, Any]] | None,
             degraded.append(f"{pl['mi'] - pl['hmi']} degraded frames with port error > PL (flagged, not hazardous)")
         bad = [(b, f) for b, _, f in deg_bins if f > 0.0]
         if bad:
-            degraded.append("pose published degraded (PL > AL: controller holds) at "
+            degraded.append("pose published degraded (PL > AL: controller holds) at sensor-to-port range "
                             + ", ".join(f"{_bin_text(b)} ({100 * f:.2g} % of frames)" for b, f in bad))
     if not_ready:
         return "NOT READY", not_ready + degraded
@@ -458,7 +458,7 @@ def run(args: argparse.Namespace) -> int:
         say(format_table([display_row(r) for r in campaign.values()]))
         deg_bins = degraded_by_range(records["tridar"])
         if deg_bins:
-            say("  pipeline pose frames by range: " + "; ".join(
+            say("  pipeline pose frames by sensor-to-port range: " + "; ".join(
                 f"{_bin_text(b)} {n} frames, {100 * f:.2g} % degraded" for b, n, f in deg_bins))
         write_rows(out, list(campaign.values()), {"mesh": str(args.mesh), "overrides": case.overrides,
                                                   "seeds": seeds, "max_steps": args.max_steps})

@@ -105,8 +105,12 @@ class FaceGrid:
         origin = lo - reach - h
         shape = tuple(int(v) for v in np.ceil((hi - lo + 2.0 * (reach + h)) / h))
 
-        cell_ids, face_ids, dist = _voxel_face_pairs(tris, nrm, np.flatnonzero(good), origin, h, shape, reach)
-        rows, starts, faces = _candidate_lists(cell_ids, face_ids, dist, facet, shape, 2.0 * half_diag)
+        cell_ids, face_ids, dist = _voxel_face_pairs(
+            tris, nrm, np.flatnonzero(good), origin, h, shape, reach
+        )
+        rows, starts, faces = _candidate_lists(
+            cell_ids, face_ids, dist, facet, shape, 2.0 * half_diag
+        )
         return cls(
             planes=planes,
             origin=origin,
@@ -307,7 +311,9 @@ def _voxel_face_pairs(
         done = float(ends[b0 - 1]) if b0 else 0.0
         b1 = max(int(np.searchsorted(ends, done + _BATCH_PAIRS, side="right")), b0 + 1)
         fb = np.arange(b0, b1)
-        cell, f, ca = _slab_voxels(fb, i0, dims, ax, cols[fb], t[fb, 0], n[fb], origin, h, reach, stride)
+        cell, f, ca = _slab_voxels(
+            fb, i0, dims, ax, cols[fb], t[fb, 0], n[fb], origin, h, reach, stride
+        )
         d, keep = _pair_distances(ca, fb[f], table, reach)
         cell_l.append(cell[keep])
         face_l.append(faces[fb[f[keep]]])
@@ -383,7 +389,9 @@ def _slab_voxels(
     half = reach / np.abs(na)
     oa = origin[fa]
     k_lo = np.maximum(np.ceil((mid - half - oa) / h - 0.5).astype(np.intp) - 1, i0[gf, fa])
-    k_hi = np.minimum(np.floor((mid + half - oa) / h - 0.5).astype(np.intp) + 1, i0[gf, fa] + dims[gf, fa] - 1)
+    k_hi = np.minimum(
+        np.floor((mid + half - oa) / h - 0.5).astype(np.intp) + 1, i0[gf, fa] + dims[gf, fa] - 1
+    )
     kn = np.maximum(k_hi - k_lo + 1, 0)
     centre = np.empty((3, f.size))
     centre[fu, r] = cu
@@ -420,7 +428,8 @@ def _triangle_distances(x: FloatArray, tab: FloatArray) -> tuple[FloatArray, Flo
         r = _T_EDGE + 10 * k
         xp0, xp1, xp2 = x[0] - tab[r], x[1] - tab[r + 1], x[2] - tab[r + 2]
         if k == 0:
-            plane = np.abs(xp0 * tab[0] + xp1 * tab[1] + xp2 * tab[2])
+            n = tab[_T_NORMAL : _T_NORMAL + 3]
+            plane = np.abs(xp0 * n[0] + xp1 * n[1] + xp2 * n[2])
         inside &= xp0 * tab[r + 3] + xp1 * tab[r + 4] + xp2 * tab[r + 5] <= 0.0
         s = np.clip((xp0 * tab[r + 6] + xp1 * tab[r + 7] + xp2 * tab[r + 8]) / tab[r + 9], 0.0, 1.0)
         xp0 -= s * tab[r + 6]

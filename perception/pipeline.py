@@ -693,7 +693,9 @@ class TriDAR:
             pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
             al = alert_limit(float(np.linalg.norm(fp + fR @ r_port)), ig.alert_limit_m, ig.alert_limit_range_m)
             kw.update(protection_level=pl, alert_limit=al)
-            valid_kw["degraded"] = pl > al
+            # A track is trusted once confirmed: its rates estimated from a few accepted frames
+            # (an acquisition's transient is not yet inside the filter's covariance).
+            valid_kw["degraded"] = pl > al or not rates_ok
         return StateVector(
             t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
             n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,

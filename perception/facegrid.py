@@ -5,7 +5,7 @@ inside it, so a lookup is a floor, a table read and a few dot products per candi
 vectorised over faces and voxels (numpy, in batches of voxel-face pairs), with no cost per face
 beyond its voxels: about 0.3 ms of CPU per face on meshes of 1k-200k faces, 2-2.7 times less than
 the per-face build it replaces. On faces much smaller than a voxel the time follows the size of
-the candidate lists (34 million entries for a 200,000-face sphere 2 m across on 6 cm voxels).
+the candidate lists (34 million entries for a 200,000-face sphere 2 m across on 4 cm voxels).
 """
 
 from __future__ import annotations

@@ -45,7 +45,9 @@ def integrity_factor(risk: float, dof: int = 3) -> float:
     return math.sqrt(float(chi2.isf(risk, dof)))
 
 
-def port_covariance(cov12: npt.ArrayLike, R_sensor_target: npt.ArrayLike, r_port_target: npt.ArrayLike) -> FloatArray:
+def port_covariance(
+    cov12: npt.ArrayLike, R_sensor_target: npt.ArrayLike, r_port_target: npt.ArrayLike
+) -> FloatArray:
     """(3, 3) covariance [m^2] of the port position from a state covariance about the target origin.
 
     Args:

@@ -5,8 +5,9 @@ short range, Fig. 9). On a target the strategy was not tuned for, the port regio
 patch: three of six axes unobserved, and an estimate that slides along the face. The
 :class:`ScanPlanner` predicts, for candidate regions, the scan the sensor will make (the same
 steered pattern and the same rays, cast on the model at the predicted pose), forms the
-registration's information ``sum A_i^T A_i / var_i`` (:func:`perception.registration.information_rows`,
-the ``J^T J / sigma^2`` behind the Cramer-Rao bound), and scores each region by the bound it gives
+registration's information ``sum A_i^T A_i / var_i``
+(:func:`perception.registration.information_rows`, the ``J^T J / sigma^2`` behind the Cramer-Rao
+bound), and scores each region by the bound it gives
 at the docking port: ``sqrt(lambda_max)`` of the port-position covariance plus the attitude bound
 times ``attitude_lever_m``. Directions carried by grazing matches that another face explains as
 well (edge mixing) or by fewer than ``min_support`` effective points count as unobserved, so a
@@ -61,8 +62,9 @@ class Prediction:
     Attributes:
         region: the region predicted.
         information: (6, 6) information of the predicted scan (twist about the target origin,
-            sensor axes; the layout of :attr:`~perception.registration.RegistrationResult.covariance`),
-            scaled to the frame's sample count.
+            sensor axes; the layout of
+            :attr:`~perception.registration.RegistrationResult.covariance`), scaled to the
+            frame's sample count.
         covariance: (6, 6) its covariance, unobserved directions at ``FAILURE_VARIANCE``.
         port_bound_m: ``sqrt(lambda_max)`` of the port position covariance [m].
         attitude_bound_rad: ``sqrt(lambda_max)`` of the attitude covariance [rad].
@@ -113,8 +115,16 @@ def predict_information(
     T = np.asarray(T_sensor_target, dtype=np.float64)
     R, t = T[:3, :3], T[:3, 3]
     n_frame = int(sensor.config.scan.n_points)  # type: ignore[attr-defined]
-    fail = Prediction(region, np.zeros((6, 6)), FAILURE_VARIANCE * np.eye(6), math.sqrt(FAILURE_VARIANCE),
-                      math.sqrt(FAILURE_VARIANCE), ["tx", "ty", "tz", "rx", "ry", "rz"], 0, math.inf)
+    fail = Prediction(
+        region,
+        np.zeros((6, 6)),
+        FAILURE_VARIANCE * np.eye(6),
+        math.sqrt(FAILURE_VARIANCE),
+        math.sqrt(FAILURE_VARIANCE),
+        ["tx", "ty", "tz", "rx", "ry", "rz"],
+        0,
+        math.inf,
+    )
     try:
         pattern = sensor.make_scan_pattern(frame_index, T, region, n_points=n_rays)  # type: ignore[attr-defined]
     except ValueError:
@@ -130,13 +140,18 @@ def predict_information(
     normals_t = face_planes(target)[0][f]
     pts_s = d_s * rng[:, None]
     tri = rng < float(sensor.transition_range_m)  # type: ignore[attr-defined]
-    sig = np.where(tri, sensor.range_sigma(rng, Subsystem.TRIANGULATION),  # type: ignore[attr-defined]
-                   sensor.range_sigma(rng, Subsystem.TOF))  # type: ignore[attr-defined]
+    sig = np.where(
+        tri,
+        sensor.range_sigma(rng, Subsystem.TRIANGULATION),  # type: ignore[attr-defined]
+        sensor.range_sigma(rng, Subsystem.TOF),
+    )  # type: ignore[attr-defined]
     c = pts_s.mean(axis=0)
     rows = information_rows(pts_s, normals_t @ R.T, sig, d_s, c, floor_fraction)
     if cfg.edge_ambiguity_sigmas > 0:
         foot_t = (pts_s - t) @ R
-        amb = edge_ambiguous(model, foot_t, normals_t, sig, -cos_inc[hit], cfg.edge_ambiguity_sigmas, d_s @ R)
+        amb = edge_ambiguous(
+            model, foot_t, normals_t, sig, -cos_inc[hit], cfg.edge_ambiguity_sigmas, d_s @ R
+        )
         rows[amb] = 0.0
     scale = n_frame / max(n_rays, 1)
     rows = rows * math.sqrt(scale)
@@ -154,15 +169,27 @@ def predict_information(
     Jinv = np.linalg.inv(J)
     info = Jinv.T @ H @ Jinv
     P12 = np.zeros((12, 12))
-    P12[0:3, 0:3], P12[0:3, 6:9], P12[6:9, 0:3], P12[6:9, 6:9] = cov[:3, :3], cov[:3, 3:], cov[3:, :3], cov[3:, 3:]
+    P12[0:3, 0:3], P12[0:3, 6:9], P12[6:9, 0:3], P12[6:9, 6:9] = (
+        cov[:3, :3],
+        cov[:3, 3:],
+        cov[3:, :3],
+        cov[3:, 3:],
+    )
     port_b = _bound(port_covariance(P12, R, target.T_target_port[:3, 3]))
     att_b = _bound(cov[3:, 3:])
-    return Prediction(region, info, cov, port_b, att_b, degenerate, n_hit,
-                      port_b + cfg.attitude_lever_m * att_b)
+    return Prediction(
+        region, info, cov, port_b, att_b, degenerate, n_hit, port_b + cfg.attitude_lever_m * att_b
+    )
 
 
-def _outline_information_rows(target: TargetModel, model: ModelCloud, T: FloatArray, d_all: FloatArray,
-                               hit: npt.NDArray[np.bool_], c: FloatArray) -> FloatArray:
+def _outline_information_rows(
+    target: TargetModel,
+    model: ModelCloud,
+    T: FloatArray,
+    d_all: FloatArray,
+    hit: npt.NDArray[np.bool_],
+    c: FloatArray,
+) -> FloatArray:
     """Rows of the outline information of a predicted scan (what the pipeline's outline
     refinement adds): pairs of consecutive samples across the outline, their silhouette-plane
     normals and quantisation variances, on the in-plane axes (tx, ty, rz) about ``c``."""
@@ -191,8 +218,14 @@ class ScanPlanner:
         floor_fraction: ICP's residual noise floor.
     """
 
-    def __init__(self, target: TargetModel, sensor: object, model: ModelCloud,
-                 config: ScanPlanConfig | None = None, floor_fraction: float = 0.2) -> None:
+    def __init__(
+        self,
+        target: TargetModel,
+        sensor: object,
+        model: ModelCloud,
+        config: ScanPlanConfig | None = None,
+        floor_fraction: float = 0.2,
+    ) -> None:
         self.target = target
         self.sensor = sensor
         self.model = model
@@ -224,7 +257,9 @@ class ScanPlanner:
             k += 1
         return out
 
-    def candidates(self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int) -> list[RegionOfInterest]:
+    def candidates(
+        self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int
+    ) -> list[RegionOfInterest]:
         """The fixed candidates plus a feature region built for the weak axes at this pose."""
         cands = list(self._fixed)
         feat = self._feature_region(T_pred, default, frame_index)
@@ -232,16 +267,30 @@ class ScanPlanner:
             cands.append(feat)
         return cands
 
-    def _feature_region(self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int) -> RegionOfInterest | None:
-        """The port plus the visible model points that best pin the default region's weakest axis."""
-        base = predict_information(self.target, self.sensor, self.model, T_pred, default, frame_index,
-                                   self.cfg.rays, self.cfg, self.floor)
+    def _feature_region(
+        self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int
+    ) -> RegionOfInterest | None:
+        """The port plus the visible model points that best pin the default region's weakest
+        axis."""
+        base = predict_information(
+            self.target,
+            self.sensor,
+            self.model,
+            T_pred,
+            default,
+            frame_index,
+            self.cfg.rays,
+            self.cfg,
+            self.floor,
+        )
         lam, V = np.linalg.eigh(base.information + 1e-12 * np.eye(6))
         weak = V[:, 0]
         whole = self.target.regions["whole"]
         R, t = T_pred[:3, :3], T_pred[:3, 3]
         try:
-            pattern = self.sensor.make_scan_pattern(frame_index, T_pred, whole, n_points=self.cfg.rays)  # type: ignore[attr-defined]
+            pattern = self.sensor.make_scan_pattern(
+                frame_index, T_pred, whole, n_points=self.cfg.rays
+            )  # type: ignore[attr-defined]
         except ValueError:
             return None
         d_s = angles_to_directions(pattern.az, pattern.el)
@@ -268,8 +317,14 @@ class ScanPlanner:
             return False
         return weak or (self.region is not None and self.region.name != self._default)
 
-    def choose(self, T_pred: npt.ArrayLike, default_name: str, frame_index: int = 0,
-               t: float = 0.0, weak: bool = False) -> tuple[RegionOfInterest, Prediction | None]:
+    def choose(
+        self,
+        T_pred: npt.ArrayLike,
+        default_name: str,
+        frame_index: int = 0,
+        t: float = 0.0,
+        weak: bool = False,
+    ) -> tuple[RegionOfInterest, Prediction | None]:
         """The region to scan now.
 
         The range strategy's region (seed 000 Fig. 9) serves as long as the registrations on it
@@ -296,9 +351,20 @@ class ScanPlanner:
         if not self.due(t, weak):
             return (self.region, self.prediction) if self.region is not None else (default, None)
         T = np.asarray(T_pred, dtype=np.float64)
-        preds = [predict_information(self.target, self.sensor, self.model, T, r, frame_index,
-                                     self.cfg.rays, self.cfg, self.floor)
-                 for r in self.candidates(T, default, frame_index)]
+        preds = [
+            predict_information(
+                self.target,
+                self.sensor,
+                self.model,
+                T,
+                r,
+                frame_index,
+                self.cfg.rays,
+                self.cfg,
+                self.floor,
+            )
+            for r in self.candidates(T, default, frame_index)
+        ]
         best = min(preds, key=lambda p: p.score)
         base = next(p for p in preds if p.region is default)
         choice = best if best.score * self.cfg.switch_factor < base.score else base

@@ -15,21 +15,31 @@ from agents.controllers import make_controller
 from perception.shapes import save_generated
 
 
-@pytest.mark.parametrize(("kind", "seed", "outcomes"), [
-    ("assembly", 12, {"docked"}),
-    ("cylinder_bus", 13, {"docked"}),
-    ("flat_face", 11, {"docked", ""}),
-])
-def test_generated_target_flies_without_misleading_frames(tmp_path, kind: str, seed: int,
-                                                         outcomes: set[str]) -> None:
+@pytest.mark.parametrize(
+    ("kind", "seed", "outcomes"),
+    [
+        ("assembly", 12, {"docked"}),
+        ("cylinder_bus", 13, {"docked"}),
+        ("flat_face", 11, {"docked", ""}),
+    ],
+)
+def test_generated_target_flies_without_misleading_frames(
+    tmp_path, kind: str, seed: int, outcomes: set[str]
+) -> None:
     path = tmp_path / f"{kind}.stl"
     pos, axis = save_generated(kind, seed, path)
-    env = gym.make("TriDAR/FinalApproach-v0", config={
-        "target__name": str(path), "target__port_position_m": [float(v) for v in pos],
-        "target__port_axis": [float(v) for v in axis], "env__initial__range_m": 8.0,
-        "env__initial__range_dispersion_m": 0.5, "env__initial__lateral_dispersion_m": 0.2,
-        "env__max_episode_steps": 1500,
-    })
+    env = gym.make(
+        "TriDAR/FinalApproach-v0",
+        config={
+            "target__name": str(path),
+            "target__port_position_m": [float(v) for v in pos],
+            "target__port_axis": [float(v) for v in axis],
+            "env__initial__range_m": 8.0,
+            "env__initial__range_dispersion_m": 0.5,
+            "env__initial__lateral_dispersion_m": 0.2,
+            "env__max_episode_steps": 1500,
+        },
+    )
     u = env.unwrapped
     r_port = u.target.T_target_port[:3, 3]
     ctrl = make_controller("glideslope", u.cfg)

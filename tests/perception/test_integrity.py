@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from perception.config import ScanPlanConfig, load_config
@@ -14,7 +13,7 @@ from perception.geometry import make_T
 from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
 from perception.observability import ScanPlanner, predict_information
 from perception.pipeline import TriDAR, approach_pose
-from perception.registration import FAILURE_VARIANCE, covariance_from_information, icp, information_rows
+from perception.registration import FAILURE_VARIANCE, covariance_from_information, icp
 from perception.shapes import generate_target
 from perception.targets import TargetModel, load_target
 
@@ -45,7 +44,9 @@ def test_port_covariance_carries_the_attitude_lever() -> None:
     C = port_covariance(P, np.eye(3), [0.0, 0.0, 10.0])
     assert C[1, 1] == pytest.approx(1e-4)
     assert C[0, 0] == pytest.approx(0.0) and C[2, 2] == pytest.approx(0.0)
-    assert alert_limit(2.0, 0.08, 5.0) == 0.08 and alert_limit(30.0, 0.08, 5.0) == pytest.approx(0.48)
+    assert alert_limit(2.0, 0.08, 5.0) == 0.08 and alert_limit(30.0, 0.08, 5.0) == pytest.approx(
+        0.48
+    )
 
 
 def test_unobservable_direction_gets_its_variance_along_itself() -> None:
@@ -83,8 +84,15 @@ def _plate(side: float = 2.0) -> TargetModel:
     mesh = trimesh.creation.box(extents=(side, side, 0.3))
     nf = len(mesh.faces)
     T_port = make_T(None, [0.0, 0.0, 0.15])
-    return TargetModel(name="plate", mesh=mesh, reflectivity=np.full(nf, 0.6), specular=np.zeros(nf, bool),
-                       T_target_port=T_port, mass=50.0, inertia=np.eye(3) * 10.0)
+    return TargetModel(
+        name="plate",
+        mesh=mesh,
+        reflectivity=np.full(nf, 0.6),
+        specular=np.zeros(nf, bool),
+        T_target_port=T_port,
+        mass=50.0,
+        inertia=np.eye(3) * 10.0,
+    )
 
 
 def test_prediction_of_a_flat_face_is_degenerate_in_plane_and_matches_icp() -> None:
@@ -101,8 +109,14 @@ def test_prediction_of_a_flat_face_is_degenerate_in_plane_and_matches_icp() -> N
     rng = np.random.default_rng(0)
     pat = tri.sensor.make_scan_pattern(0, T, roi)
     cloud = tri.sensor.scan(target, T, pat, rng)
-    res = icp(cloud.points, tri.model, T, sigma=cloud.sigma, directions=cloud.directions,
-              config=tri.logic.icp_config_for(cloud.subsystem))
+    res = icp(
+        cloud.points,
+        tri.model,
+        T,
+        sigma=cloud.sigma,
+        directions=cloud.directions,
+        config=tri.logic.icp_config_for(cloud.subsystem),
+    )
     sd_pred, sd_icp = np.sqrt(pred.covariance[2, 2]), np.sqrt(res.covariance[2, 2])
     assert 0.5 < sd_pred / sd_icp < 2.0
 
@@ -135,8 +149,16 @@ def test_planner_moves_off_a_degenerate_default_when_a_candidate_observes_more()
     default = target.regions["docking_area"]
     roi, pred = tri.planner.choose(T, "docking_area", 0, 0.0, weak=True)
     assert pred is not None
-    base = predict_information(target, tri.sensor, tri.model, T, default, 0, cfg.pipeline.scan_plan.rays,
-                               cfg.pipeline.scan_plan)
+    base = predict_information(
+        target,
+        tri.sensor,
+        tri.model,
+        T,
+        default,
+        0,
+        cfg.pipeline.scan_plan.rays,
+        cfg.pipeline.scan_plan,
+    )
     assert pred.score <= base.score
     names = {r.name for r in tri.planner.candidates(T, default, 0)}
     assert roi.name in names
@@ -185,6 +207,7 @@ def test_a_plate_whose_edges_are_in_view_is_placed_by_its_outline() -> None:
         err = np.linalg.norm(T[:3, :3] @ r + T[:3, 3] - (T0[:3, :3] @ r + T0[:3, 3]))
         assert err < sv.protection_level
     assert tri.stats.outline_accepted > 0
-    tri, _, tracked = _track_still(target, 4.0, pipeline__scan_plan__mode="range",
-                                   pipeline__outline_refinement=False)
+    tri, _, tracked = _track_still(
+        target, 4.0, pipeline__scan_plan__mode="range", pipeline__outline_refinement=False
+    )
     assert tracked[-1].valid.degraded

@@ -681,21 +681,22 @@ class TriDAR:
                 valid_kw["range_rate"] = True
                 blocks += [slice(3, 6), slice(9, 12)]
             # The registrations' correlated error does not average down: published on top.
+            ig = self.pc.integrity
+            r_port = self.target.T_target_port[:3, 3]
+            port_rng = float(np.linalg.norm(fp + fR @ r_port))
             fP = fP.copy()
-            fP.flat[0:36:13] += self.pc.integrity.bias_m**2
+            fP.flat[0:36:13] += max(ig.bias_m, ig.bias_rad * port_rng) ** 2
             for a in blocks:
                 for b in blocks:
                     cov[a, b] = fP[a, b]
             # Integrity: the port's error bound from the filter's full pose covariance (the
             # unobservable directions of the registrations grow there, not in the floors).
-            ig = self.pc.integrity
-            r_port = self.target.T_target_port[:3, 3]
             pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
-            al = alert_limit(float(np.linalg.norm(fp + fR @ r_port)), ig.alert_limit_m, ig.alert_limit_range_m)
+            al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
             kw.update(protection_level=pl, alert_limit=al)
-            # A track is trusted once confirmed: its rates estimated from a few accepted frames
-            # (an acquisition's transient is not yet inside the filter's covariance).
-            valid_kw["degraded"] = pl > al or not rates_ok
+            # A track is trusted once confirmed by a few accepted frames (its rates estimated; an
+            # acquisition's transient is not yet inside the filter's covariance).
+            valid_kw["degraded"] = pl > al or out.n_updates < ig.confirm_frames
         return StateVector(
             t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
             n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,

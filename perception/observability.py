@@ -257,33 +257,28 @@ class ScanPlanner:
             k += 1
         return out
 
+    def _predict(
+        self, T: FloatArray, region: RegionOfInterest, frame_index: int
+    ) -> Prediction:
+        return predict_information(
+            self.target, self.sensor, self.model, T, region, frame_index, self.cfg.rays,
+            self.cfg, self.floor,
+        )
+
     def candidates(
         self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int
     ) -> list[RegionOfInterest]:
         """The fixed candidates plus a feature region built for the weak axes at this pose."""
-        cands = list(self._fixed)
-        feat = self._feature_region(T_pred, default, frame_index)
-        if feat is not None:
-            cands.append(feat)
-        return cands
+        base = self._predict(T_pred, default, frame_index)
+        feat = self._feature_region(T_pred, base.information, frame_index)
+        return list(self._fixed) + ([feat] if feat is not None else [])
 
     def _feature_region(
-        self, T_pred: FloatArray, default: RegionOfInterest, frame_index: int
+        self, T_pred: FloatArray, information: FloatArray, frame_index: int
     ) -> RegionOfInterest | None:
-        """The port plus the visible model points that best pin the default region's weakest
-        axis."""
-        base = predict_information(
-            self.target,
-            self.sensor,
-            self.model,
-            T_pred,
-            default,
-            frame_index,
-            self.cfg.rays,
-            self.cfg,
-            self.floor,
-        )
-        lam, V = np.linalg.eigh(base.information + 1e-12 * np.eye(6))
+        """The port plus the visible model points that best pin the weakest axis of
+        ``information`` (the range strategy's region's predicted information)."""
+        lam, V = np.linalg.eigh(information + 1e-12 * np.eye(6))
         weak = V[:, 0]
         whole = self.target.regions["whole"]
         R, t = T_pred[:3, :3], T_pred[:3, 3]
@@ -351,22 +346,14 @@ class ScanPlanner:
         if not self.due(t, weak):
             return (self.region, self.prediction) if self.region is not None else (default, None)
         T = np.asarray(T_pred, dtype=np.float64)
-        preds = [
-            predict_information(
-                self.target,
-                self.sensor,
-                self.model,
-                T,
-                r,
-                frame_index,
-                self.cfg.rays,
-                self.cfg,
-                self.floor,
-            )
-            for r in self.candidates(T, default, frame_index)
-        ]
-        best = min(preds, key=lambda p: p.score)
+        # The fixed candidates include the default region: its prediction also seeds the
+        # feature region (predicted once, not again for it).
+        preds = [self._predict(T, r, frame_index) for r in self._fixed]
         base = next(p for p in preds if p.region is default)
+        feat = self._feature_region(T, base.information, frame_index)
+        if feat is not None:
+            preds.append(self._predict(T, feat, frame_index))
+        best = min(preds, key=lambda p: p.score)
         choice = best if best.score * self.cfg.switch_factor < base.score else base
         self.region, self.prediction = choice.region, choice
         self._t_plan = float(t)

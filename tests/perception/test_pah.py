@@ -484,7 +484,14 @@ def test_near_symmetric_alternatives_are_judged_with_the_symmetry_tolerance(
     raw_fit = db._verify(bundle, Ts[near : near + 1], mc, free_space=False)[0][0]
     alts = db._alternatives(h, bundle, [h], mc, ICPConfig(max_iterations=12), None)
     errs = [pose_error(a.T, T) for a in alts]
-    assert any(e_m < 0.02 and e_deg < 1.0 for e_m, e_deg in errs), (raw_fit, errs)
+    # The short ICP brings the alternative near the truth (how near depends on the BLAS build's
+    # rounding: 0.07 deg or 2 deg); the full ICP that follows takes it home.
+    best = int(np.argmin([e_deg for _, e_deg in errs]))
+    assert errs[best][0] < 0.03 and errs[best][1] < 5.0, (raw_fit, errs)
+    final = icp(cloud.points, mc, alts[best].T, sigma=sig, directions=cloud.directions,
+                match_along_rays=True).T_sensor_target
+    e_m, e_deg = pose_error(final, T)
+    assert e_m < 0.01 and e_deg < 0.5, (e_m, e_deg)
     assert raw_fit < 0.5 * h.fitness  # the old plain-gate filter would have dropped it
 
 

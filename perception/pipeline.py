@@ -159,14 +159,16 @@ class TriDAR:
     ) -> None:
         self.cfg = config
         self.pc = config.pipeline
-        self.target = target
+        self.target = target  # the sensor scans it
+        # What the estimator knows of it (the simplified mesh of a dense CAD file).
+        self.model_target = target.model_view()
         self.sensor = sensor if sensor is not None else TriDARSensor(config.sensor)
-        self.model = prepare_model(target, self.pc.icp.model_points)
+        self.model = prepare_model(self.model_target, self.pc.icp.model_points)
         self._pah = pah
         self.logic = ModeLogic(self.pc, self.sensor.transition_range_m)
         self.planner: ScanPlanner | None = None
         if self.pc.scan_plan.mode == "observability":
-            self.planner = ScanPlanner(target, self.sensor, self.model, self.pc.scan_plan,
+            self.planner = ScanPlanner(self.model_target, self.sensor, self.model, self.pc.scan_plan,
                                        self.pc.icp.noise_floor_fraction)
         self.R_nominal = nominal_attitude(config, target)
         self.frame_period = 1.0 / self.pc.frame_rate_hz
@@ -222,7 +224,8 @@ class TriDAR:
             from perception.pah import PAHDatabase
 
             key = ("pah_db", self.pc.pah.model_dump_json())
-            self._pah = self.target.cached(key, lambda: PAHDatabase.build(self.target, self.pc.pah))
+            mt = self.model_target
+            self._pah = mt.cached(key, lambda: PAHDatabase.build(mt, self.pc.pah))
         return self._pah
 
     def prepare(self) -> None:
@@ -568,7 +571,7 @@ class TriDAR:
         geom = FlashGeometry(dirs, 1, dirs.shape[0], 0.05, 0.0, math.inf)
         icp_cfg = self.logic.icp_config_for(cloud.subsystem)
         ref = refine_with_outline(
-            pts, cloud.directions, cloud.sigma, dirs[a], dirs[b], self.target, self.model,
+            pts, cloud.directions, cloud.sigma, dirs[a], dirs[b], self.model_target, self.model,
             res.T_sensor_target, geom, noise_floor_fraction=icp_cfg.noise_floor_fraction,
             back_facing_cos=icp_cfg.back_facing_cos, gate_m=max(3.0 * res.inlier_rmse, 0.05),
         )

@@ -330,3 +330,32 @@ def test_established_track_starts_icp_in_its_fine_phase_unless_configured(monkey
     assert all(calls) != fine_only  # fine-only frames appear exactly when configured
     errs = [pose_error(sv.T_sensor_target, fly.T(t)) for t, sv in hist[-5:] if sv.valid.position]
     assert errs and max(e[0] for e in errs) < 0.05
+
+
+def test_a_dense_cad_target_is_tracked_on_its_simplified_model(tmp_path) -> None:
+    # A user's dense export: the sensor scans all its faces, the estimator (ICP face grid, scan
+    # planner, outline refinement, PAH) works on the simplified copy, and the face indices of
+    # the two never mix (they did: the planner indexed the simplified grid with full-mesh faces).
+    from perception.shapes import generate_target
+
+    gen = generate_target("assembly", 3)
+    dense = gen.mesh
+    for _ in range(4):
+        dense = dense.subdivide()
+    path = tmp_path / "dense.stl"
+    dense.export(path)
+    port = (gen.T_target_port[:3, 3], gen.T_target_port[:3, 2])
+    with pytest.warns(UserWarning, match="max_model_faces"):
+        target = load_target(path, port=port, max_model_faces=len(dense.faces) // 4)
+    assert target.model_view() is not target and target.simplification_deviation_m < 0.02
+    cfg = load_config("final_approach")
+    tri = TriDAR(cfg, target)
+    assert tri.model_target is target.model_view()
+    tri.reset(np.random.default_rng(5))
+    fly = Fly(approach_pose(cfg, target, 6.0, lateral=(0.05, -0.03)), v=(0.0, 0.0, -0.05))
+    tri.seed_pose(fly.T(0.0), 0.0)
+    hist = _run(tri, fly, 40)
+    errs = [pose_error(sv.T_sensor_target, fly.T(t)) for t, sv in hist if sv.valid.pose]
+    assert len(errs) >= 20
+    assert max(e[0] for e in errs) < 0.03 and max(e[1] for e in errs) < 1.0, errs
+    assert tri.planner is not None and tri.planner.model is tri.model

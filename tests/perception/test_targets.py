@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 from perception.shapes import generate_target, save_generated
+from perception.sensors.raycast import cast_rays
 from perception.targets import ENVELOPES_M, LIBRARY, find_symmetries, has_embree, load_target
 
 
@@ -290,15 +291,33 @@ def test_millimetre_mesh_refused_unless_scaled(tmp_path: Path) -> None:
         assert load_target(path, max_extent_m=2000.0).extents[0] == pytest.approx(1200.0)
 
 
+def test_an_oversized_mesh_file_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    path = tmp_path / "big.stl"
+    trimesh.creation.icosphere(subdivisions=4).export(path)
+    with pytest.raises(ValueError, match=r"big.stl is 0 MiB, more than max_file_bytes=0 MiB"):
+        load_target(path, max_file_bytes=1000)
+
+
 def test_dense_mesh_gets_a_simplified_model_mesh(tmp_path: Path) -> None:
     sphere = trimesh.creation.icosphere(subdivisions=7, radius=1.5)  # 327,680 faces
     path = tmp_path / "dense.stl"
     sphere.export(path)
     # (Load time is a benchmark's business, not a test's: ~4 s here on a quiet machine.)
-    with pytest.warns(UserWarning, match=r"327680 faces > max_model_faces=200000; ICP and PAH use"):
+    with pytest.warns(UserWarning, match=r"327680 faces > max_model_faces=20000; ICP and PAH use"):
         t = load_target(path, port=((0.0, 0.0, 1.5), (0.0, 0.0, 1.0)))
     assert len(t.mesh.faces) == 327_680  # the sensor keeps the full mesh
-    assert t.model_mesh is not t.mesh and 1_000 < len(t.model_mesh.faces) <= 200_000
+    assert t.model_mesh is not t.mesh and 1_000 < len(t.model_mesh.faces) <= 20_000
+    # The model side sees the simplified mesh as a target of its own: its ray casts index the
+    # faces its face grid and face planes index.
+    view = t.model_view()
+    assert view is t.model_view() and view.mesh is t.model_mesh
+    assert view.reflectivity.shape == (len(t.model_mesh.faces),)
+    d = np.tile([0.0, 0.0, -1.0], (50, 1))
+    o = np.column_stack([np.linspace(-1, 1, 50), np.zeros(50), np.full(50, 3.0)])
+    face, rng_m, _ = cast_rays(view, o, d)
+    assert face.max() < len(t.model_mesh.faces) and np.all(face >= 0)
+    expected = np.sqrt(1.5**2 - o[:, 0] ** 2)
+    np.testing.assert_allclose(3.0 - rng_m, expected, atol=t.simplification_deviation_m + 1e-3)
     assert 0.0 < t.simplification_deviation_m < 0.005
     # The reported deviation bounds what an outside reference measures on the simplified vertices.
     v = t.model_mesh.vertices[:: max(1, len(t.model_mesh.vertices) // 300)]

@@ -26,10 +26,12 @@ not change the others' samples.
 Execution: an embedded ``LocalCluster`` (processes, one single-threaded worker per core) by default,
 or ``scheduler="tcp://host:port"`` for an existing cluster (whose workers must have tridar-env
 installed), or an in-process serial loop. The client writes one Parquet part file per finished run
-(``parts/run_000042.parquet``, written to a temporary name and renamed), so an interrupted campaign
-resumes from what exists and runs only the missing indices; the final ``results.parquet`` is the
-union, one row per run. The resolved campaign config is saved as ``campaign.yaml`` beside the
-results, and a resume refuses to mix results of a different config.
+(``parts/run_000042.parquet``, written to a temporary name, fsynced and renamed), so an interrupted
+campaign resumes from what exists and runs only the missing indices (a part that cannot be read
+back is moved to ``parts/quarantine/`` and its run done again); the final ``results.parquet`` is
+the union, one row per run. The resolved campaign config is saved as ``campaign.yaml`` beside the
+results, and a resume refuses to mix results of a different config. The folder carries the marker
+of :mod:`agents.outputs` and is locked while a campaign writes it.
 
 Example:
     >>> from agents.campaign import load_campaign, run_campaign
@@ -57,6 +59,16 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from agents.outputs import (
+    atomic_write,
+    check_folder,
+    check_name,
+    claim_folder,
+    fsync_dir,
+    is_marked,
+    lock_folder,
+    remove_stale_tmp,
+)
 from perception.config import (
     config_path,
     ConfigError,
@@ -91,6 +103,13 @@ log = logging.getLogger(__name__)
 _DIST_KEYS = ("uniform", "loguniform", "normal", "choice", "constant")
 _DIST_EXTRA = {"clip", "weights"}
 _PART_RE = re.compile(r"^run_(\d{6,})\.parquet$")
+_QUARANTINED_RE = re.compile(r"^run_\d{6,}\.parquet(\.\d+)?$")
+#: Marker kind of a campaign folder (:mod:`agents.outputs`).
+KIND = "campaign"
+#: Damaged parts are moved here (inside ``parts/``) on resume.
+QUARANTINE_DIR = "quarantine"
+_SUMMARY_FILES = ("results.parquet", "summary.json", "summary.txt")
+PLOT_FILES = ("contact_envelope.png", "delta_v_hist.png", "error_vs_range.png")
 #: Steps of the per-run estimation-error trace kept for the error-vs-range plot.
 TRACE_POINTS = 100
 
@@ -244,7 +263,8 @@ class CampaignConfig(BaseModel):
     """A Monte Carlo campaign (one YAML file in ``configs/campaigns``).
 
     Attributes:
-        name: label for tables and the default output folder.
+        name: label for tables and the default output folder ``runs/campaigns/<name>``: a plain
+            folder name (letters, digits, ``.``, ``_``, ``-``; :func:`agents.outputs.check_name`).
         env_id: a registered id (``TriDAR/FinalApproach-v0``, ...).
         mission: optional mission YAML replacing the id's own mission file.
         perception: ``truth``, ``truth+noise`` or ``tridar``.
@@ -316,6 +336,10 @@ def validate_campaign(cfg: CampaignConfig, source: str = "campaign") -> None:
     def fail(msg: str) -> None:
         raise ConfigError(f"campaign {source}: {msg}")
 
+    try:
+        check_name(cfg.name)
+    except ValueError as exc:
+        fail(str(exc))
     if _bare_id(cfg.env_id) not in ENV_IDS:
         fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
     if cfg.controller not in CONTROLLERS and ":" not in cfg.controller:
@@ -611,39 +635,86 @@ def _write_part(parts: Path, row: dict[str, Any]) -> Path:
     import pandas as pd
 
     final = parts / f"run_{row['index']:06d}.parquet"
-    tmp = parts / f".{final.name}.{os.getpid()}.tmp"
-    pd.DataFrame([row]).to_parquet(tmp, index=False)
-    os.replace(tmp, final)
-    return final
+    return atomic_write(final, lambda tmp: pd.DataFrame([row]).to_parquet(tmp, index=False))
 
 
 def _existing_parts(parts: Path) -> dict[int, Path]:
+    """Part files by run index; temporary files of writes cut short (this process's or a dead
+    process's) are removed, a live process's are left alone."""
+    remove_stale_tmp(parts)
     out = {}
     if parts.is_dir():
         for p in parts.iterdir():
             m = _PART_RE.match(p.name)
             if m:
                 out[int(m.group(1))] = p
-            elif p.name.endswith(".tmp"):
-                p.unlink(missing_ok=True)  # a write cut short by an interruption
     return out
 
 
-def _read_parts(paths: Sequence[Path]) -> Any:
+def _read_part(path: Path, index: int) -> Any:
+    """One part as a one-row table; ValueError when it is not the row of run ``index``."""
     import pandas as pd
 
-    if not paths:
+    try:
+        df = pd.read_parquet(path)
+    except Exception as exc:  # noqa: BLE001  (pyarrow raises many types for a damaged file)
+        raise ValueError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    if len(df) != 1 or not {"index", "outcome"} <= set(df) or int(df["index"].iloc[0]) != index:
+        raise ValueError(f"expected one row of run {index}, got {len(df)} rows")
+    return df
+
+
+def _quarantine(path: Path) -> Path:
+    """Move a damaged part into ``parts/quarantine/`` (never over an earlier one)."""
+    qdir = path.parent / QUARANTINE_DIR
+    qdir.mkdir(exist_ok=True)
+    dest, k = qdir / path.name, 1
+    while dest.exists():
+        dest, k = qdir / f"{path.name}.{k}", k + 1
+    os.replace(path, dest)
+    fsync_dir(qdir)
+    fsync_dir(path.parent)
+    return dest
+
+
+def _load_parts(parts: Path) -> dict[int, Any]:
+    """The stored rows by run index; a part that cannot be read is quarantined (one warning line
+    naming it) so that its run is done again."""
+    rows = {}
+    for i, p in sorted(_existing_parts(parts).items()):
+        try:
+            rows[i] = _read_part(p, i)
+        except ValueError as exc:
+            dest = _quarantine(p)
+            log.warning("warning: %s is damaged (%s); moved to %s, run %d is done again",
+                        p, exc, dest, i)
+    return rows
+
+
+def _concat(frames: Sequence[Any]) -> Any:
+    import pandas as pd
+
+    if not frames:
         return pd.DataFrame()
-    frames = [pd.read_parquet(p) for p in paths]
     df = pd.concat(frames, ignore_index=True)
     return df.sort_values("index", kind="stable").reset_index(drop=True)
 
 
-def _atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
-    return path
+def _discard(out: Path) -> None:
+    """``--fresh``: delete the files a campaign writes (known names only) in ``out``."""
+    parts = out / "parts"
+    for p in _existing_parts(parts).values():
+        p.unlink()
+    qdir = parts / QUARANTINE_DIR
+    if qdir.is_dir():
+        for p in qdir.iterdir():
+            if _QUARANTINED_RE.match(p.name):
+                p.unlink()
+    for name in (*_SUMMARY_FILES, "campaign.yaml"):
+        (out / name).unlink(missing_ok=True)
+    for name in PLOT_FILES:
+        (out / "plots" / name).unlink(missing_ok=True)
+    remove_stale_tmp(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -781,7 +852,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
         ax.set_ylim(bottom=0.0)
         ax.legend(loc="upper right", fontsize=8)
         ax.grid(alpha=0.3)
-    paths.append(out / "contact_envelope.png")
+    paths.append(out / PLOT_FILES[0])
     fig.savefig(paths[-1], dpi=110)
 
     # 2. Delta-v histogram by outcome.
@@ -796,7 +867,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
         ax.legend(fontsize=8)
     ax.set(xlabel="delta-v [m/s]", ylabel="runs", title="delta-v per run")
     ax.grid(alpha=0.3)
-    paths.append(out / "delta_v_hist.png")
+    paths.append(out / PLOT_FILES[1])
     fig.savefig(paths[-1], dpi=110)
 
     # 3. Estimation error against range (all runs' valid-pose steps).
@@ -826,7 +897,7 @@ def plot_campaign(df: Any, envelope: Any, out_dir: str | Path) -> list[Path]:
         ax.legend(fontsize=8)
     ax.set(xlabel="range [m]", ylabel="position error [m]", title="estimation error vs range")
     ax.grid(alpha=0.3, which="both")
-    paths.append(out / "error_vs_range.png")
+    paths.append(out / PLOT_FILES[2])
     fig.savefig(paths[-1], dpi=110)
     return paths
 
@@ -878,6 +949,11 @@ def run_campaign(
 ) -> CampaignResult:
     """Run (or resume) a campaign into ``out_dir``.
 
+    The folder is claimed with a marker (:mod:`agents.outputs`) and locked while the campaign
+    runs: a folder tridar-env did not create is refused unless empty, and a second process on the
+    same folder is refused. Parts that cannot be read back are moved to ``parts/quarantine/``
+    and their runs done again.
+
     Args:
         cfg: the campaign.
         out_dir: results folder: ``campaign.yaml``, ``parts/``, ``results.parquet``,
@@ -885,7 +961,7 @@ def run_campaign(
         scheduler: Dask scheduler address; None for an embedded LocalCluster.
         workers: LocalCluster workers (default: one per core).
         serial: run in this process instead (debugging, the benchmark's baseline).
-        fresh: discard results already in ``out_dir``.
+        fresh: discard results already in ``out_dir`` (the files a campaign writes, nothing else).
         retry_errors: rerun runs whose stored outcome is ``error``.
         progress: show a tqdm bar.
         plots: write the PNG plots.
@@ -894,79 +970,119 @@ def run_campaign(
 
     Raises:
         ConfigError: ``out_dir`` holds results of a different campaign config.
+        OutputFolderError (a ValueError): ``out_dir`` was not created by a tridar-env campaign
+            and is not empty, or another process is writing it.
         ValueError: the scheduler cannot be reached.
     """
-    import pandas as pd
-
     validate_campaign(cfg)
     out = Path(out_dir)
-    parts = out / "parts"
-    saved = out / "campaign.yaml"
-    if saved.is_file() and not fresh:
-        try:
-            old = load_config(saved, model=CampaignConfig)
-        except ConfigError as exc:
-            raise ConfigError(
-                f"{saved} cannot be read back ({exc.args[0].splitlines()[0]}); pass --fresh to "
-                "discard the old results"
-            ) from None
-        if old.identity() != cfg.identity():
-            diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
-            raise ConfigError(
-                f"{out} holds results of a different campaign (fields differ: {', '.join(diff)}); "
-                "pass --fresh to discard them or choose another output folder"
+    check_folder(out, KIND, destroy="--fresh" if fresh else None)
+    with contextlib.ExitStack() as held:
+        if is_marked(out):  # an earlier campaign's folder: hold it before reading it
+            held.enter_context(lock_folder(out))
+        if not fresh:
+            _check_same_campaign(cfg, out)
+        # Connect before touching the disk: a bad scheduler leaves nothing behind.
+        client_cm = (
+            contextlib.nullcontext(None) if serial
+            else open_client(scheduler, workers, connect_timeout_s)
+        )
+        with client_cm as client:
+            if not is_marked(out):
+                claim_folder(out, KIND)
+                held.enter_context(lock_folder(out))
+            if fresh:
+                _discard(out)
+            rows, todo, ran, wall = _run_missing(
+                cfg, out, client, retry_errors=retry_errors, progress=progress,
+                on_result=on_result,
             )
-    # Connect before touching the disk: a bad scheduler leaves nothing behind.
-    client_cm = (
-        contextlib.nullcontext(None) if serial
-        else open_client(scheduler, workers, connect_timeout_s)
-    )
-    with client_cm as client:
-        if fresh and out.exists():
-            for p in _existing_parts(parts).values():
-                p.unlink()
-            for name in ("results.parquet", "summary.json", "summary.txt", "campaign.yaml"):
-                (out / name).unlink(missing_ok=True)
-        parts.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, saved)
-        existing = _existing_parts(parts)
-        if retry_errors:
-            for i, p in list(existing.items()):
-                if pd.read_parquet(p, columns=["outcome"])["outcome"].iloc[0] == "error":
-                    p.unlink()
-                    del existing[i]
-        todo = [i for i in range(cfg.runs) if i not in existing]
-        if todo:
-            for name in ("results.parquet", "summary.json", "summary.txt"):
-                (out / name).unlink(missing_ok=True)
-        ran: list[int] = []
-        docked = 0
-        t0 = time.perf_counter()
-        bar = None
-        if progress and todo:
-            from tqdm.auto import tqdm
+        return _finish(cfg, out, rows, todo, ran, wall, plots)
 
-            bar = tqdm(total=cfg.runs, initial=cfg.runs - len(todo), desc=cfg.name, unit="run")
-        try:
-            results = contextlib.closing(iter_results(build_specs(cfg, todo), client))
-            with results as rows:
-                for row in rows:
-                    _write_part(parts, row)
-                    ran.append(int(row["index"]))
-                    if bar is not None:
-                        docked += row["outcome"] == "docked"
-                        bar.update(1)
-                        bar.set_postfix(docked=f"{docked}/{len(ran)}", refresh=False)
-                    if on_result is not None:
-                        on_result(row)
-        finally:
-            if bar is not None:
-                bar.close()
-        wall = time.perf_counter() - t0
 
-    existing = _existing_parts(parts)
-    in_range = [existing[i] for i in sorted(existing) if i < cfg.runs]
-    table = _read_parts(in_range)
+def _check_same_campaign(cfg: CampaignConfig, out: Path) -> None:
+    saved = out / "campaign.yaml"
+    if not saved.is_file():
+        return
+    try:
+        old = load_config(saved, model=CampaignConfig)
+    except ConfigError as exc:
+        raise ConfigError(
+            f"{saved} cannot be read back ({exc.args[0].splitlines()[0]}); pass --fresh to "
+            "discard the old results"
+        ) from None
+    if old.identity() != cfg.identity():
+        diff = sorted(k for k, v in cfg.identity().items() if old.identity().get(k) != v)
+        raise ConfigError(
+            f"{out} holds results of a different campaign (fields differ: {', '.join(diff)}); "
+            "pass --fresh to discard them or choose another output folder"
+        )
+
+
+def _run_missing(
+    cfg: CampaignConfig,
+    out: Path,
+    client: Any,
+    *,
+    retry_errors: bool,
+    progress: bool,
+    on_result: Callable[[dict[str, Any]], None] | None,
+) -> tuple[dict[int, Any], list[int], list[int], float]:
+    """Run the indices without a readable part; returns (stored rows by index, the indices
+    that were to run, those that ran, wall time)."""
+    parts = out / "parts"
+    parts.mkdir(exist_ok=True)
+    atomic_write(out / "campaign.yaml", lambda p: save_config(cfg, p))
+    rows = _load_parts(parts)
+    if retry_errors:
+        for i, df in list(rows.items()):
+            if df["outcome"].iloc[0] == "error":
+                (parts / f"run_{i:06d}.parquet").unlink()
+                del rows[i]
+    todo = [i for i in range(cfg.runs) if i not in rows]
+    if todo:
+        for name in _SUMMARY_FILES:
+            (out / name).unlink(missing_ok=True)
+    ran: list[int] = []
+    docked = 0
+    t0 = time.perf_counter()
+    bar = None
+    if progress and todo:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.runs, initial=cfg.runs - len(todo), desc=cfg.name, unit="run")
+    try:
+        results = contextlib.closing(iter_results(build_specs(cfg, todo), client))
+        with results as new_rows:
+            for row in new_rows:
+                _write_part(parts, row)
+                ran.append(int(row["index"]))
+                if bar is not None:
+                    docked += row["outcome"] == "docked"
+                    bar.update(1)
+                    bar.set_postfix(docked=f"{docked}/{len(ran)}", refresh=False)
+                if on_result is not None:
+                    on_result(row)
+    finally:
+        if bar is not None:
+            bar.close()
+    # The new rows as stored (the Parquet round trip), exactly as a later resume reads them.
+    for i in ran:
+        rows[i] = _read_part(parts / f"run_{i:06d}.parquet", i)
+    return rows, todo, ran, time.perf_counter() - t0
+
+
+def _finish(
+    cfg: CampaignConfig,
+    out: Path,
+    rows: dict[int, Any],
+    todo: list[int],
+    ran: list[int],
+    wall: float,
+    plots: bool,
+) -> CampaignResult:
+    in_range = [rows[i] for i in sorted(rows) if i < cfg.runs]
+    table = _concat(in_range)
     complete = len(in_range) == cfg.runs
     summary = summarize(table)
     result = CampaignResult(
@@ -974,11 +1090,11 @@ def run_campaign(
         failed_to_execute=len(todo) - len(ran), wall_time_s=wall,
     )
     if complete:
-        _atomic_write(out / "results.parquet", lambda p: table.to_parquet(p, index=False))
-        _atomic_write(
+        atomic_write(out / "results.parquet", lambda p: table.to_parquet(p, index=False))
+        atomic_write(
             out / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2) + "\n")
         )
-        _atomic_write(
+        atomic_write(
             out / "summary.txt",
             lambda p: p.write_text(format_summary(summary, f"campaign {cfg.name}") + "\n"),
         )

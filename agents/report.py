@@ -14,6 +14,9 @@ and returns an :class:`EpisodeRecord`. :func:`write_report` turns that into a fo
     contact.png        closing conditions against the capture envelope
     episode.mp4        rendered frames (imageio-ffmpeg), else episode.gif (Pillow)
 
+plus the marker of :mod:`agents.outputs` (a report is written only into a new or empty folder, or
+over an earlier report).
+
 The controller never sees what the recorder logs: the recorder reads ``info`` truth and the env's
 public state after each step, for the record only.
 """
@@ -38,6 +41,8 @@ from perception.geometry import invert
 from tridar_env.env import observation_slices
 
 _S = observation_slices()
+#: Marker kind of a report folder (:mod:`agents.outputs`).
+KIND = "report"
 
 #: Columns of the report's per-step log (SI units; ``*_true`` is simulator truth, ``*_est`` the
 #: TriDAR estimate the controller saw, ``nan`` where the estimate was not valid).
@@ -464,10 +469,23 @@ def plot_contact(rec: EpisodeRecord, path: Path) -> Path:
 
 
 def write_report(record: EpisodeRecord, out_dir: str | Path, *, video: bool = True,
-                 fps: int = 10) -> dict[str, Path]:
-    """Write the report folder of one recorded episode; returns name -> path of what was written."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+                 fps: int = 10, new: bool = False) -> dict[str, Path]:
+    """Write the report folder of one recorded episode; returns name -> path of what was written.
+
+    The folder is claimed for reports (:mod:`agents.outputs`): a new or empty folder, or one an
+    earlier report wrote; with ``new`` (a time-stamped default name) it must not exist yet.
+
+    Raises:
+        OutputFolderError (a ValueError): ``out_dir`` may not be written (see above).
+    """
+    from agents.outputs import claim_folder, lock_folder
+
+    out = claim_folder(out_dir, KIND, new=new)
+    with lock_folder(out):
+        return _write_files(record, out, video, fps)
+
+
+def _write_files(record: EpisodeRecord, out: Path, video: bool, fps: int) -> dict[str, Path]:
     files: dict[str, Path] = {"config": save_config(record.cfg, out / "config.yaml")}
     s = summary_dict(record)
     for p in write_log(record.rows, out):

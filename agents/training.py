@@ -15,7 +15,8 @@ Intended workflow (the reason for the three perception modes):
 A training run writes, into its folder: ``model.zip`` (SB3), ``vecnormalize.npz`` (observation and
 return statistics as plain arrays, so that evaluation never unpickles them), ``training.yaml`` (the
 resolved config), ``checkpoints/`` (model + statistics every ``checkpoint_every_steps``) and
-``tb/`` (TensorBoard logs).
+``tb/`` (TensorBoard logs). The folder carries the marker of :mod:`agents.outputs`: ``--force``
+replaces those files only, and only in a folder ``train`` created.
 
 Loading a policy (:func:`load_policy`) checks that the file is a zip with SB3's members and hands
 SB3 replacements for every pickled field of the archive, so that no user-supplied bytes are
@@ -28,9 +29,7 @@ import contextlib
 import importlib.util
 import inspect
 import json
-import os
 import re
-import shutil
 import time
 import zipfile
 from collections.abc import Callable
@@ -42,6 +41,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field
 
+from agents.outputs import atomic_write, check_folder, check_name, claim_folder, lock_folder
 from perception.config import ConfigError, MissionConfig, config_path, load_config, save_config
 
 __all__ = [
@@ -64,6 +64,10 @@ MODEL_FILE = "model.zip"
 STATS_FILE = "vecnormalize.npz"
 CONFIG_FILE = "training.yaml"
 PRETRAIN_FILE = "pretrain.json"
+CHECKPOINT_DIR = "checkpoints"
+#: Marker kind of a training run folder (:mod:`agents.outputs`).
+KIND = "train"
+_CHECKPOINT_RE = re.compile(r"^(model|vecnormalize)_\d+_steps\.(zip|npz)$")
 #: Members every SB3 model archive has.
 SB3_MEMBERS = ("data", "policy.pth")
 
@@ -109,7 +113,8 @@ class TrainingConfig(BaseModel):
     """A training run (one YAML file in ``configs/training``).
 
     Attributes:
-        name: run name (default output folder ``runs/train/<name>``, TensorBoard run name).
+        name: run name (default output folder ``runs/train/<name>``, TensorBoard run name): a plain
+            folder name (letters, digits, ``.``, ``_``, ``-``).
         algo: ``ppo`` or ``sac``.
         env_id: registered id; ``mission`` optionally replaces its mission file.
         perception: what the policy sees while training (``truth+noise`` is the intended mode).
@@ -184,6 +189,10 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
     def fail(msg: str) -> None:
         raise ConfigError(f"{source}: {msg}")
 
+    try:
+        check_name(cfg.name)
+    except ValueError as exc:
+        fail(str(exc))
     if _bare_id(cfg.env_id) not in ENV_IDS:
         fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
     if cfg.pretrain is not None and cfg.algo != "ppo":
@@ -229,15 +238,14 @@ def load_training(path: str | Path, **overrides: Any) -> TrainingConfig:
 # VecNormalize statistics as plain arrays
 # ---------------------------------------------------------------------------------------------
 def _save_stats(vec: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-    np.savez(
-        tmp,
+    arrays = dict(
         obs_mean=vec.obs_rms.mean, obs_var=vec.obs_rms.var, obs_count=vec.obs_rms.count,
         ret_mean=vec.ret_rms.mean, ret_var=vec.ret_rms.var, ret_count=vec.ret_rms.count,
         clip_obs=vec.clip_obs, clip_reward=vec.clip_reward, epsilon=vec.epsilon, gamma=vec.gamma,
         norm_obs=vec.norm_obs, norm_reward=vec.norm_reward,
     )
-    os.replace(tmp, path)
+    # The temporary name ends in .npz: np.savez would append it otherwise.
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
 
 
 def _load_stats(path: Path) -> dict[str, np.ndarray]:
@@ -510,10 +518,21 @@ def _critic_warmup_callback(steps: int) -> Any:
 
 def _save_model(model: Any, path: Path) -> None:
     # Transient training state is left out: it is pickled by SB3 and useless for inference.
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.zip")
-    model.save(tmp, exclude=["_last_obs", "_last_episode_starts", "_last_original_obs",
-                             "ep_info_buffer", "ep_success_buffer", "env"])
-    os.replace(tmp, path)
+    exclude = ["_last_obs", "_last_episode_starts", "_last_original_obs", "ep_info_buffer",
+               "ep_success_buffer", "env"]
+    atomic_write(path, lambda tmp: model.save(tmp, exclude=exclude), suffix=".zip")
+
+
+def _discard(out: Path) -> None:
+    """``--force``: delete what an earlier ``train`` wrote in ``out`` (known names only; the
+    TensorBoard logs stay, SB3 numbers the next run)."""
+    for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE):
+        (out / name).unlink(missing_ok=True)
+    ckpt = out / CHECKPOINT_DIR
+    if ckpt.is_dir():
+        for p in ckpt.iterdir():
+            if _CHECKPOINT_RE.match(p.name) and p.is_file():
+                p.unlink()
 
 
 def train(
@@ -525,11 +544,12 @@ def train(
         cfg: the training run.
         out_dir: run folder (see the module docstring for its contents).
         progress: SB3's progress bar (when tqdm and rich are installed).
-        force: replace a policy already in ``out_dir``.
+        force: replace a policy already in ``out_dir`` (only in a folder ``train`` created).
 
     Raises:
-        ConfigError: invalid config; FileExistsError-like ValueError when ``out_dir`` holds a
-            model and ``force`` is False.
+        ConfigError: invalid config. ValueError: ``out_dir`` holds a model and ``force`` is
+            False. OutputFolderError (a ValueError): ``out_dir`` was not created by ``train``
+            and is not empty, or another process is writing it.
     """
     import torch
     from stable_baselines3.common.callbacks import CallbackList
@@ -537,11 +557,13 @@ def train(
 
     mission = validate_training(cfg)
     out = Path(out_dir)
+    check_folder(out, KIND, destroy="--force" if force else None)
     if (out / MODEL_FILE).exists() and not force:
         raise ValueError(f"{out / MODEL_FILE} exists; pass --force to replace it or choose another --out")
     torch.set_num_threads(cfg.torch_threads)
     venv = _make_vec_env(cfg, mission)
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(venv.close)
         gamma = float(cfg.hyperparams.get("gamma", 0.99))
         vec = VecNormalize(
             venv, norm_obs=cfg.normalize.obs, norm_reward=cfg.normalize.reward,
@@ -557,20 +579,22 @@ def train(
             demos = collect_demonstrations(cfg, mission, progress=progress)
             pretrain_stats = pretrain_policy(model, vec, demos, cfg.pretrain, gamma, cfg.seed)
         # The env and model were built: only now does the run folder appear.
-        if force and out.exists():
-            for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE):
-                (out / name).unlink(missing_ok=True)
-            shutil.rmtree(out / "checkpoints", ignore_errors=True)
-        out.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, out / CONFIG_FILE)
+        claim_folder(out, KIND)
+        stack.enter_context(lock_folder(out))
+        if force:
+            _discard(out)
+        elif (out / MODEL_FILE).exists():  # another run finished meanwhile
+            raise ValueError(f"{out / MODEL_FILE} exists; pass --force to replace it or choose another --out")
+        atomic_write(out / CONFIG_FILE, lambda p: save_config(cfg, p))
         if pretrain_stats is not None:
-            (out / PRETRAIN_FILE).write_text(json.dumps(pretrain_stats, indent=2) + "\n")
+            text = json.dumps(pretrain_stats, indent=2) + "\n"
+            atomic_write(out / PRETRAIN_FILE, lambda p: p.write_text(text))
         callbacks = [_outcome_callback()]
         if cfg.pretrain is not None and cfg.pretrain.critic_warmup_steps > 0:
             callbacks.append(_critic_warmup_callback(cfg.pretrain.critic_warmup_steps))
         if cfg.checkpoint_every_steps is not None:
             freq = max(cfg.checkpoint_every_steps // cfg.n_envs, 1)
-            callbacks.append(_checkpoint_callback(freq, out / "checkpoints", vec))
+            callbacks.append(_checkpoint_callback(freq, out / CHECKPOINT_DIR, vec))
         t0 = time.perf_counter()
         interrupted = False
         try:
@@ -585,8 +609,6 @@ def train(
         _save_stats(vec, out / STATS_FILE)
         return TrainResult(out, out / MODEL_FILE, out / STATS_FILE, int(model.num_timesteps), wall,
                            interrupted)
-    finally:
-        venv.close()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -858,7 +880,7 @@ def evaluate(
     if config is None:
         config = dict(train_cfg.config) if train_cfg and _bare_id(train_cfg.env_id) == _bare_id(env_id) else {}
     camp = CampaignConfig(
-        name=f"evaluate {p}", env_id=env_id, perception=perception,  # type: ignore[arg-type]
+        name="evaluate", env_id=env_id, perception=perception,  # type: ignore[arg-type]
         controller=f"sb3:{p.resolve()}", runs=episodes, seed=seed, max_steps=max_steps,
         config=config, mission=train_cfg.mission if train_cfg else None,
     )

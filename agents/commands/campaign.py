@@ -12,7 +12,8 @@ from agents.cli import command
 def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="campaign YAML (or a name in configs/campaigns)")
     p.add_argument("--out", type=Path, default=None,
-                   help="results folder (default runs/campaigns/<name>); an existing one resumes")
+                   help="results folder (default runs/campaigns/<name>); an existing one resumes "
+                        "(a folder tridar-env did not create is refused unless empty)")
     p.add_argument("--scheduler", default=None,
                    help="address of a running Dask scheduler (tcp://host:port); "
                         "default: an embedded LocalCluster")
@@ -25,7 +26,8 @@ def add(p: argparse.ArgumentParser) -> None:
                    help="override the perception mode")
     p.add_argument("--controller", default=None, help="override the controller name")
     p.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")
-    p.add_argument("--fresh", action="store_true", help="discard results already in --out")
+    p.add_argument("--fresh", action="store_true",
+                   help="discard results already in --out (only in a folder a campaign created)")
     p.add_argument("--retry-errors", action="store_true",
                    help="rerun runs whose stored outcome is 'error'")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

@@ -34,6 +34,8 @@ from typing import Any
 
 from agents.cli import command
 
+#: Marker kind of a check-target report folder (:mod:`agents.outputs`).
+KIND = "check-target"
 #: Distances from the chaser's docking interface to the port along the nominal approach for the
 #: observability map [m] (the sensor sits behind the interface: its range to the port is larger).
 MAP_RANGES_M = (30.0, 20.0, 10.0, 5.0, 3.0, 2.0, 1.0)
@@ -376,6 +378,7 @@ def run(args: argparse.Namespace) -> int:
         write_rows,
     )
     from agents.benchmarks.timing import format_table
+    from agents.outputs import claim_folder
     from perception.config import load_config
     from perception.pah import PAHDatabase
 
@@ -401,7 +404,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config("final_approach", **case.overrides)
 
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
-    out = new_folder(args.out if args.out is not None else Path("reports") / f"check-target-{target.name}-{stamp}")
+    # A new folder (an existing one gets a -2, -3... sibling), marked as a check-target report.
+    out = claim_folder(new_folder(
+        args.out if args.out is not None else Path("reports") / f"check-target-{target.name}-{stamp}"
+    ), KIND)
     say(f"check-target {args.mesh}: stock final_approach mission, report in {out}")
     say(f"(a) validation: loaded in {t_load:.1f} s")
     for w in load_warnings:

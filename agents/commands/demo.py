@@ -28,7 +28,9 @@ def _common(p: argparse.ArgumentParser, controller_default: str, out_default: st
     p.add_argument("--perception", choices=["tridar", "truth", "truth+noise"], default=None,
                    help="state-vector source (default: env.perception of the mission config)")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
-    p.add_argument("--out", type=Path, default=None, help=f"report folder (default {out_default})")
+    p.add_argument("--out", type=Path, default=None,
+                   help=f"report folder (default {out_default}); a new or empty folder, or an "
+                        "earlier report's")
     p.add_argument("--render-every", type=int, default=40, metavar="N",
                    help="render a video frame every N steps (default 40; 0: no video)")
     p.add_argument("--no-video", action="store_true", help="skip rendering and the video")
@@ -101,11 +103,18 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
     from tqdm import tqdm
 
     from agents.controllers import make_controller
+    from agents.outputs import check_folder
+    from agents.report import KIND as REPORT_KIND
     from agents.report import fly, format_summary, summary_dict, write_report
 
     render_every = 0 if args.no_video else args.render_every
     if render_every < 0:
         raise ValueError(f"--render-every={render_every}; expected >= 0")
+    # A time-stamped default folder is always new: never written over, even by a demo started
+    # in the same second. The folder is checked before anything is built.
+    stamped = args.out is None
+    out = args.out or Path("reports") / f"{prefix}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_folder(out, REPORT_KIND, new=stamped)
     try:
         env = make("rgb_array" if render_every else None)
     except ImportError as exc:
@@ -118,7 +127,6 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
     if name is None:
         name = "sync" if cfg.dynamics.chaser.attitude == "controlled" else "glideslope"
     controller = make_controller(name, cfg)
-    out = args.out or Path("reports") / f"{prefix}-{time.strftime('%Y%m%d-%H%M%S')}"
     total = args.max_steps or cfg.env.max_episode_steps
     bar = tqdm(total=total, unit="step", disable=args.no_progress, dynamic_ncols=True,
                desc=f"{env_name} [{cfg.env.perception}]")
@@ -131,6 +139,6 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
         bar.refresh()
         bar.close()
         env.close()
-    write_report(record, out, video=bool(render_every), fps=args.fps)
+    write_report(record, out, video=bool(render_every), fps=args.fps, new=stamped)
     print(format_summary(summary_dict(record), out))
     return 0 if record.result.docked else 1

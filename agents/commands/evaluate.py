@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
+from typing import Any
 
 from agents.cli import command
+
+#: Marker kind of an ``evaluate --out`` folder (:mod:`agents.outputs`).
+KIND = "evaluate"
 
 
 @command("evaluate", "run a saved SB3 policy for N episodes on any id and perception mode")
@@ -24,15 +27,19 @@ def add(p: argparse.ArgumentParser) -> None:
                    help="run episodes on a Dask LocalCluster with this many processes")
     p.add_argument("--scheduler", default=None, help="or on a running Dask scheduler tcp://host:port")
     p.add_argument("--out", type=Path, default=None,
-                   help="also write results.parquet and summary.json into this folder")
+                   help="also write results.parquet and summary.json into this folder (new, "
+                        "empty or written by evaluate before)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from agents.campaign import format_summary
+    from agents.outputs import check_folder
     from agents.training import evaluate
 
+    if args.out is not None:
+        check_folder(args.out, KIND)  # refuse before the episodes are flown
     table, summary = evaluate(
         args.model, env_id=args.env_id, perception=args.perception, episodes=args.episodes,
         seed=args.seed, max_steps=args.max_steps, progress=not args.no_progress,
@@ -41,10 +48,18 @@ def run(args: argparse.Namespace) -> int:
     print(format_summary(summary, f"evaluate {args.model} on {args.env_id or 'its training id'} "
                                   f"(perception={args.perception}, seed={args.seed})"))
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        tmp = args.out / f".results.parquet.{os.getpid()}.tmp"
-        table.to_parquet(tmp, index=False)
-        os.replace(tmp, args.out / "results.parquet")
-        (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_results(args.out, table, summary)
         print(f"results: {args.out / 'results.parquet'}")
     return 0
+
+
+def write_results(out: Path, table: Any, summary: dict[str, Any]) -> None:
+    """``results.parquet`` and ``summary.json`` in ``out``, a folder evaluate created (or an
+    empty one), each written atomically."""
+    from agents.outputs import atomic_write, claim_folder, lock_folder
+
+    claim_folder(out, KIND)
+    with lock_folder(out):
+        atomic_write(out / "results.parquet", lambda p: table.to_parquet(p, index=False))
+        atomic_write(out / "summary.json",
+                     lambda p: p.write_text(json.dumps(summary, indent=2) + "\n"))

@@ -19,7 +19,8 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help="override the seed")
     p.add_argument("--perception", choices=["truth", "truth+noise", "tridar"], default=None,
                    help="override the perception mode used for training")
-    p.add_argument("--force", action="store_true", help="replace a model already in --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace a model already in --out (only in a folder train created)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=run)
 

@@ -55,6 +55,13 @@ def write_yaml(path: Path, data: dict) -> Path:
     return path
 
 
+def dead_pid() -> int:
+    """The id of a process that has ended."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
 def frame(df: pd.DataFrame) -> pd.DataFrame:
     """A results table without the wall-clock column (the only non-reproducible one)."""
     return df.drop(columns=["wall_time_s"]).sort_values("index").reset_index(drop=True)
@@ -165,8 +172,9 @@ def test_campaign_on_local_cluster_rows_resume_and_no_duplicates(tmp_path):
         run_campaign(cfg, out, workers=2, progress=False, on_result=interrupt)
     parts = sorted(p.name for p in (out / "parts").glob("run_*.parquet"))
     assert len(parts) == 2 and not (out / "results.parquet").exists()
-    # A write cut short leaves a temporary file: it must be ignored and cleaned.
-    (out / "parts" / ".run_000009.parquet.123.tmp").write_bytes(b"partial")
+    # A write cut short leaves a temporary file (its writer's pid in the name, the process gone):
+    # it must be ignored and cleaned.
+    (out / "parts" / f".run_000009.parquet.{dead_pid()}.tmp").write_bytes(b"partial")
 
     res = run_campaign(cfg, out, workers=2, progress=False)
     assert sorted(res.ran) == sorted(set(range(4)) - set(seen))  # only the missing ones ran
@@ -229,6 +237,88 @@ def test_retry_errors_reruns_only_errored_runs(tmp_path, monkeypatch):
     assert run_campaign(cfg, tmp_path, serial=True, progress=False, plots=False).ran == []
     res = run_campaign(cfg, tmp_path, serial=True, progress=False, plots=False, retry_errors=True)
     assert res.ran == [0, 1] and set(res.table["outcome"]) <= {"docked", "failed"}
+
+
+# Three quick runs on truth perception (a few steps each).
+QUICK = {**TINY, "perception": "truth", "runs": 3, "max_steps": 8}
+
+
+@pytest.mark.parametrize("retry_errors", [False, True])
+def test_a_damaged_part_is_quarantined_and_its_run_redone(tmp_path, caplog, retry_errors):
+    cfg = CampaignConfig(**QUICK)
+    ref = run_campaign(cfg, tmp_path / "ref", serial=True, progress=False, plots=False)
+    out = tmp_path / "o"
+    run_campaign(cfg, out, serial=True, progress=False, plots=False)
+    bad = out / "parts" / "run_000001.parquet"
+    damaged = bad.read_bytes()[:40]  # a part cut short (no Parquet footer)
+    bad.write_bytes(damaged)
+    res = run_campaign(cfg, out, serial=True, progress=False, plots=False,
+                       retry_errors=retry_errors)
+    assert res.ran == [1] and res.complete
+    moved = out / "parts" / "quarantine" / "run_000001.parquet"
+    assert moved.read_bytes() == damaged
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and str(bad) in warnings[0] and str(moved) in warnings[0]
+    assert "\n" not in warnings[0]
+    # The resumed campaign is the uninterrupted one.
+    pd.testing.assert_frame_equal(frame(res.table), frame(ref.table))
+    pd.testing.assert_frame_equal(frame(pd.read_parquet(out / "results.parquet")), frame(ref.table))
+    # A part holding another run's row is damaged too; a second quarantine keeps the first.
+    (out / "parts" / "run_000000.parquet").write_bytes(bad.read_bytes())
+    bad.write_bytes(b"garbage")
+    res = run_campaign(cfg, out, serial=True, progress=False, plots=False)
+    assert res.ran == [0, 1]
+    assert sorted(p.name for p in moved.parent.iterdir()) == [
+        "run_000000.parquet", "run_000001.parquet", "run_000001.parquet.1"]
+    pd.testing.assert_frame_equal(frame(res.table), frame(ref.table))
+
+
+LOCKER = """
+import sys, time
+from agents.outputs import lock_folder
+with lock_folder(sys.argv[1]):
+    print("locked", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_second_process_on_the_same_folder_is_refused(tmp_path):
+    cfg = CampaignConfig(**{**QUICK, "runs": 1})
+    out = tmp_path / "o"
+    run_campaign(cfg, out, serial=True, progress=False, plots=False)
+    before = sorted(p.name for p in (out / "parts").iterdir())
+    other = subprocess.Popen([sys.executable, "-c", LOCKER, str(out)], stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert other.stdout.readline().strip() == "locked"
+        for kw in ({}, {"fresh": True}, {"retry_errors": True}):
+            busy = f"in use by another tridar-env process \\(pid {other.pid}\\)"
+            with pytest.raises(ValueError, match=busy):
+                run_campaign(CampaignConfig(**{**QUICK, "runs": 2}), out, serial=True,
+                             progress=False, plots=False, **kw)
+        assert sorted(p.name for p in (out / "parts").iterdir()) == before
+    finally:
+        other.kill()
+        other.wait()
+    assert run_campaign(CampaignConfig(**{**QUICK, "runs": 2}), out, serial=True, progress=False,
+                        plots=False).ran == [1]
+
+
+def test_resume_leaves_a_live_process_tmp_file_alone(tmp_path):
+    cfg = CampaignConfig(**{**QUICK, "runs": 1})
+    out = tmp_path / "o"
+    run_campaign(cfg, out, serial=True, progress=False, plots=False)
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        theirs = out / "parts" / f".run_000005.parquet.{live.pid}.tmp"
+        stale = out / "parts" / f".run_000006.parquet.{dead_pid()}.tmp"
+        theirs.write_bytes(b"being written")
+        stale.write_bytes(b"partial")
+        assert run_campaign(cfg, out, serial=True, progress=False, plots=False).ran == []
+        assert theirs.read_bytes() == b"being written" and not stale.exists()
+    finally:
+        live.kill()
+        live.wait()
 
 
 def test_summary_success_rate_and_wilson_interval():

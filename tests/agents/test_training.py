@@ -145,6 +145,27 @@ def test_sac_trains_and_loads(tmp_path):
         train(cfg, tmp_path, progress=False)
 
 
+def test_force_replaces_only_what_train_wrote(tmp_path):
+    cfg = TrainingConfig(**{**TINY, "n_envs": 1, "vec_env": "dummy", "total_timesteps": 64,
+                            "checkpoint_every_steps": 32,
+                            "hyperparams": {"n_steps": 32, "batch_size": 32, "n_epochs": 1}})
+    out = tmp_path / "run"
+    train(cfg, out, progress=False)
+    (out / "notes.txt").write_text("mine")
+    (out / "checkpoints" / "best.zip").write_text("mine")
+    with pytest.raises(ValueError, match="exists; pass --force"):
+        train(cfg, out, progress=False)
+    train(cfg.model_copy(update={"checkpoint_every_steps": 64}), out, progress=False, force=True)
+    # The old run's checkpoints are gone, the user's files are not.
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == [
+        "best.zip", "model_64_steps.zip", "vecnormalize_64_steps.npz"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "checkpoints" / "best.zip").read_text() == "mine"
+    assert load_config(out / "training.yaml", model=TrainingConfig).checkpoint_every_steps == 64
+    assert not list(out.glob(".*.tmp*"))
+    assert json.loads((out / ".tridar-env-output").read_text())["kind"] == "train"
+
+
 # ---------------------------------------------------------------------------------------------
 # Bad input
 # ---------------------------------------------------------------------------------------------

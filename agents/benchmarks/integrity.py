@@ -364,15 +364,16 @@ def display_row(row: dict[str, Any]) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- output
-def new_folder(path: Path) -> Path:
-    """Create ``path`` as a new folder; an existing one gets a ``-2``, ``-3``... sibling instead
-    (results are never written over)."""
+def new_folder(path: Path, kind: str = "bench-integrity") -> Path:
+    """Create ``path`` as a new folder marked for ``kind`` (:mod:`agents.outputs`); an existing one
+    gets a ``-2``, ``-3``... sibling instead (results are never written over)."""
+    from agents.outputs import OutputFolderError, claim_folder
+
     k, p = 1, path
     while True:
         try:
-            p.mkdir(parents=True, exist_ok=False)
-            return p
-        except FileExistsError:
+            return claim_folder(p, kind, new=True)
+        except OutputFolderError:
             k += 1
             p = path.with_name(f"{path.name}-{k}")
 

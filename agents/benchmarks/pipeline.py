@@ -235,8 +235,10 @@ def plot(result: dict, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from agents.outputs import claim_folder
+
     rec, sc = result["rec"], result["scenario"]
-    out.mkdir(parents=True, exist_ok=True)
+    claim_folder(out, "bench-pipeline")  # its own files only: never a folder someone else filled
     fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=False)
     ax = axes[0]
     ax.semilogx(rec["range"], 1e3 * rec["pos_err"], ".", ms=2, label="centre of mass")

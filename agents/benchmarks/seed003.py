@@ -617,11 +617,13 @@ def run(args: argparse.Namespace) -> int:
     import yaml
 
     from agents.benchmarks.timing import format_table
+    from agents.outputs import check_folder, claim_folder
     from perception.config import FlashLidarConfig, ICPConfig
     from perception.linetrack import seed003_icp_config
 
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    check_folder(out, "bench-seed003")  # before the work: its own files only
+    claim_folder(out, "bench-seed003")
     all_runs: dict[int, dict[str, Run]] = {}
     for e in args.experiments:
         t0 = time.perf_counter()

@@ -179,6 +179,7 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
 
     pc = cfg.pipeline
     sensor = TriDARSensor(cfg.sensor)
+    target = target.model_view()  # what the estimator knows (a dense mesh's simplified copy)
     model = prepare_model(target, pc.icp.model_points)
     logic = ModeLogic(pc, sensor.transition_range_m)
     planner = ScanPlanner(target, sensor, model, pc.scan_plan, pc.icp.noise_floor_fraction)
@@ -378,7 +379,6 @@ def run(args: argparse.Namespace) -> int:
         write_rows,
     )
     from agents.benchmarks.timing import format_table
-    from agents.outputs import claim_folder
     from perception.config import load_config
     from perception.pah import PAHDatabase
 
@@ -405,9 +405,10 @@ def run(args: argparse.Namespace) -> int:
 
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     # A new folder (an existing one gets a -2, -3... sibling), marked as a check-target report.
-    out = claim_folder(new_folder(
-        args.out if args.out is not None else Path("reports") / f"check-target-{target.name}-{stamp}"
-    ), KIND)
+    out = new_folder(
+        args.out if args.out is not None else Path("reports") / f"check-target-{target.name}-{stamp}",
+        KIND,
+    )
     say(f"check-target {args.mesh}: stock final_approach mission, report in {out}")
     say(f"(a) validation: loaded in {t_load:.1f} s")
     for w in load_warnings:
@@ -417,7 +418,7 @@ def run(args: argparse.Namespace) -> int:
 
     # (b) PAH database
     t0 = time.perf_counter()
-    db = PAHDatabase.build(target, cfg.pipeline.pah)
+    db = PAHDatabase.build(target.model_view(), cfg.pipeline.pah)
     t_pah = time.perf_counter() - t0
     n_entries = next((len(getattr(db, a)) for a in ("entries", "keys", "views", "table")
                       if hasattr(db, a) and hasattr(getattr(db, a), "__len__")), None)

@@ -37,6 +37,8 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="mission YAML whose sensor/flash sections apply")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", default="scan.ply", help="PLY path; the PNG goes next to it")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing PLY/PNG of that name (refused otherwise)")
     p.set_defaults(handler=run)
 
 
@@ -111,6 +113,13 @@ def run(args: argparse.Namespace) -> int:
         label = f"{pattern.name} {len(pattern)} samples in {pattern.duration * 1e3:.0f} ms"
 
     out = Path(args.output)
+    existing = [q for q in (out, out.with_suffix(".png")) if q.exists()]
+    folder = next((q for q in existing if q.is_dir()), None)
+    if folder is not None:
+        raise ValueError(f"{folder} is a folder; expected a file path for -o")
+    if existing and not args.force:
+        raise ValueError(f"{', '.join(map(str, existing))} exists; pass --force to replace it or "
+                         "choose another -o")
     out.parent.mkdir(parents=True, exist_ok=True)
     colors = np.zeros((len(cloud), 4), dtype=np.uint8)
     colors[:, 3] = 255

@@ -21,6 +21,7 @@ from agents.outputs import (
     check_folder,
     check_name,
     claim_folder,
+    is_marked,
     lock_folder,
     read_marker,
     remove_stale_tmp,
@@ -325,3 +326,18 @@ def test_check_target_writes_a_new_marked_folder_beside_an_existing_one(tmp_path
     assert untouched(theirs)
     report = tmp_path / "theirs-2"
     assert read_marker(report)["kind"] == "check-target" and (report / "report.txt").is_file()
+
+
+def test_benchmark_report_folders_never_take_a_users_folder(tmp_path: Path) -> None:
+    from agents.benchmarks.integrity import new_folder
+    from agents.benchmarks.pipeline import plot
+
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep")
+    with pytest.raises(OutputFolderError, match="not created by tridar-env"):
+        plot({"rec": {}, "scenario": None}, user)  # refused before anything is drawn
+    assert sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    # The integrity bench and check-target: a new marked sibling, never the existing folder.
+    out = new_folder(user, "bench-integrity")
+    assert out != user and is_marked(out) and (user / "notes.txt").read_text() == "keep"

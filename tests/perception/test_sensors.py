@@ -423,3 +423,12 @@ def test_scan_command_writes_ply_and_png(tmp_path, capsys) -> None:
     assert np.all(np.abs(np.linalg.norm(cloud.vertices, axis=1) - 20.0) < 2.0)
     png = out.with_suffix(".png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # An existing file is a user's until proven otherwise: refused, untouched; --force replaces.
+    png.write_bytes(b"user's picture")
+    before = out.read_bytes()
+    assert main(["scan", "--target", "cygnss", "--range", "20", "-o", str(out)]) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert png.read_bytes() == b"user's picture" and out.read_bytes() == before
+    assert main(["scan", "--target", "cygnss", "--range", "20", "-o", str(out), "--force"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["scan", "--target", "cygnss", "--range", "20", "-o", str(tmp_path), "--force"]) == 2

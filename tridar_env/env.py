@@ -11,7 +11,14 @@ import numpy as np
 import numpy.typing as npt
 from gymnasium import spaces
 
-from perception.config import DockingEnvelopeConfig, MissionConfig, flatten_overrides, load_config
+from perception.config import (
+    ConfigError,
+    DockingEnvelopeConfig,
+    MissionConfig,
+    flatten_overrides,
+    resolve_config,
+    short_repr,
+)
 from perception.geometry import fast_cross, fast_matrix_to_quat, fast_quat_to_matrix, invert
 from perception.state import Mode, StateVector, Validity
 from perception.targets import TargetModel, load_target
@@ -60,23 +67,66 @@ _SLICES = observation_slices()
 _MODE_NAMES = {m: m.name.lower() for m in Mode}
 
 
-def _resolve_config(config: str | Path | MissionConfig | dict[str, Any] | None, **overrides: Any) -> MissionConfig:
+def _resolve_config(
+    config: str | Path | MissionConfig | dict[str, Any] | None, overrides: dict[str, Any]
+) -> MissionConfig:
+    """The mission a ``config`` argument names, with ``overrides`` on top (a ``ConfigError``
+    naming the field for anything else, a config of the wrong type included)."""
     if isinstance(config, MissionConfig):
         if overrides:
-            return load_config(None, **{**flatten_overrides(config.model_dump(mode="json")), **overrides})
+            return resolve_config(None, {**flatten_overrides(config.model_dump(mode="json")), **overrides})
         return config
     if isinstance(config, dict):
-        return load_config(None, **{**config, **overrides})
-    return load_config(config, **overrides)
+        return resolve_config(None, {**config, **overrides})
+    if config is not None and not isinstance(config, (str, Path)):
+        raise ConfigError(
+            f"config={short_repr(config)} ({type(config).__name__}); expected a mission YAML path, "
+            "a mission name, a MissionConfig or a dict of overrides"
+        )
+    return resolve_config(config, overrides)
+
+
+def as_action(action: Any, shape: tuple[int, ...], name: str = "action") -> FloatArray:
+    """A policy's action as float64 of ``shape``, or a one-line ``ValueError`` naming what is wrong.
+
+    Real numbers of any numeric dtype are accepted (``Box(-1, 1)`` in float32 is what the space
+    samples); booleans, strings, complex numbers and Python objects are refused, as are a wrong
+    shape (extra axes of length 1 aside) and NaN or inf. Values outside [-1, 1] are the caller's
+    to clip.
+    """
+    try:
+        a = np.asarray(action)
+    except (ValueError, TypeError, OverflowError) as exc:  # ragged nesting, unconvertible objects
+        raise ValueError(f"{name}={short_repr(action)} is not an array of numbers ({exc}); "
+                         f"expected {shape} floats in [-1, 1]") from None
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"{name}={short_repr(action)} has dtype {a.dtype}; expected {shape} real numbers "
+                         "(float32) in [-1, 1]")
+    if a.shape != shape and a.squeeze().shape != shape:  # (1, 3) for (3,) is fine, (3, 2) for (2, 3) not
+        raise ValueError(f"{name} has shape {a.shape}; expected {shape}")
+    a = a.astype(np.float64).reshape(shape)
+    finite = np.isfinite(a)
+    if not finite.all():
+        if a.ndim > 1:  # a batch: name the first environment's row
+            i = int(np.flatnonzero(~finite.all(axis=tuple(range(1, a.ndim))))[0])
+            name, a = f"{name}[{i}]", a[i]
+        raise ValueError(
+            f"{name}={short_repr(a.tolist())} contains NaN or inf; expected finite values in [-1, 1]"
+        )
+    return a
 
 
 def make_target(cfg: MissionConfig) -> TargetModel:
     """The target model a mission config names (a library target or a mesh file with its port)."""
     tc = cfg.target
-    if Path(tc.name).suffix:
-        port = (tc.port_position_m, tc.port_axis) if tc.port_position_m is not None else None
-        return load_target(tc.name, scale=tc.scale, port=port, mass=tc.mass_kg, reflectivity=tc.reflectivity)
-    return load_target(tc.name)
+    try:
+        if Path(tc.name).suffix:
+            port = (tc.port_position_m, tc.port_axis) if tc.port_position_m is not None else None
+            return load_target(tc.name, scale=tc.scale, port=port, mass=tc.mass_kg, reflectivity=tc.reflectivity)
+        return load_target(tc.name)
+    except OSError as exc:  # a missing mesh, a name too long for the file system
+        raise ConfigError(f"target.name={short_repr(tc.name)}: {exc.strerror or exc}; expected a library "
+                          "target or a readable mesh file") from None
 
 
 def envelope_excess(c: ContactState, e: DockingEnvelopeConfig) -> float:
@@ -111,7 +161,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     ``Box(-1, 1, (3,))`` thrust per axis scaled to ``max_thrust_n`` [N], in the chaser body frame
     (or LVLH, per ``dynamics.chaser.thrust_frame``). With ``dynamics.chaser.attitude: controlled``
     it is ``Box(-1, 1, (6,))``: thrust then body torque scaled to ``max_torque_nm`` [N m]. Values
-    outside [-1, 1] are clipped and counted in ``info["clipped_actions"]``; NaN/inf raise.
+    outside [-1, 1] are clipped and counted in ``info["clipped_actions"]``; NaN, inf, booleans,
+    strings, complex numbers or a wrong shape raise a one-line ``ValueError``.
 
     ## Observation Space
     ``Box((OBS_DIM,), float32)``, laid out by :data:`OBSERVATION_STRUCTURE`:
@@ -186,7 +237,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     ) -> None:
         if perception is not None:
             overrides["env__perception"] = perception
-        self.cfg = _resolve_config(config, **overrides)
+        self.cfg = _resolve_config(config, overrides)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}; expected one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -299,11 +350,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     ) -> tuple[npt.NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if not self._ready:
             raise RuntimeError("DockingEnv.step() called before reset(); call reset() first")
-        a = np.asarray(action, dtype=np.float64).reshape(-1)
-        if a.shape != self.action_space.shape:
-            raise ValueError(f"action has shape {a.shape}; expected {self.action_space.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action={a.tolist()} contains NaN or inf; expected finite values in [-1, 1]")
+        a = as_action(action, self.action_space.shape)
         clipped = int(np.count_nonzero(np.abs(a) > 1.0))
         a = np.minimum(np.maximum(a, -1.0), 1.0)
         ch = self.cfg.dynamics.chaser

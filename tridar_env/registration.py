@@ -13,6 +13,14 @@ keyword arguments to :class:`~tridar_env.env.DockingEnv`; a ``config`` dict is a
 the id's mission file. ``gymnasium.make_vec(id, num_envs, vectorization_mode="vector_entry_point",
 perception="truth")`` builds :class:`~tridar_env.vector.TruthVectorEnv`, which steps all the
 environments as arrays (truth and truth-plus-noise perception only).
+
+The time limit is the resolved mission's ``env.max_episode_steps``: the entry point wraps the env
+in ``TimeLimit`` with it, so ``config={"env__max_episode_steps": 10}`` (or ``{"env":
+{"max_episode_steps": 10}}``, or ``env__max_episode_steps=10``) truncates at 10 steps, and
+``env.spec.max_episode_steps`` says so. The ids are registered without a limit of their own for
+that reason (Gymnasium's would be fixed at registration, whatever the config). ``gymnasium.make``'s
+own ``max_episode_steps=N`` adds its ``TimeLimit`` outside, which can only shorten an episode: the
+observation's ``time_fraction`` counts against the mission's limit, so lengthen it there.
 """
 
 from __future__ import annotations
@@ -21,7 +29,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from perception.config import config_path, load_config
+from perception.config import config_path
 
 ENV_IDS: dict[str, str] = {
     "TriDAR/FinalApproach-v0": "final_approach",
@@ -40,24 +48,33 @@ def mission_source(mission: str | None, config: Any = None) -> tuple[Any, dict[s
     return config, {}
 
 
-def make_mission_env(mission: str, config: Any = None, **kwargs: Any) -> Any:
-    """Entry point: the id's mission file, with ``config`` (a path or overrides dict) on top."""
-    from tridar_env.env import DockingEnv
+def make_mission_env(
+    mission: str, config: Any = None, *, render_mode: str | None = None, **overrides: Any
+) -> gym.Env[Any, Any]:
+    """Entry point: the id's mission file with ``config`` (a path, or an overrides dict whose keys
+    are overrides whatever they are named) and ``overrides`` on top, in a ``TimeLimit`` of the
+    resolved ``env.max_episode_steps``."""
+    from gymnasium.wrappers import TimeLimit
 
-    source, overrides = mission_source(mission, config)
-    return DockingEnv(source, **overrides, **kwargs)
+    from tridar_env.env import DockingEnv, _resolve_config
+
+    source, file_overrides = mission_source(mission, config)
+    perception = overrides.pop("perception", None)
+    if perception is not None:
+        overrides["env__perception"] = perception
+    env = DockingEnv(_resolve_config(source, {**file_overrides, **overrides}), render_mode=render_mode)
+    return TimeLimit(env, env.cfg.env.max_episode_steps)
 
 
 def register_envs() -> None:
-    """Register every id (idempotent)."""
+    """Register every id (idempotent); the time limit comes with the env (module docstring)."""
     for env_id, mission in ENV_IDS.items():
         if env_id in gym.registry:
             continue
-        steps = load_config(config_path(mission)).env.max_episode_steps
         gym.register(
             id=env_id,
             entry_point="tridar_env.registration:make_mission_env",
             vector_entry_point="tridar_env.vector:TruthVectorEnv",
-            max_episode_steps=steps,
+            max_episode_steps=None,
             kwargs={"mission": mission},
         )

@@ -47,6 +47,7 @@ from tridar_env.env import (
     OBS_DIM,
     DockingEnv,
     _resolve_config,
+    as_action,
     envelope_excess,
     observation_slices,
 )
@@ -116,7 +117,7 @@ class TruthVectorEnv(VectorEnv):
         if perception is not None:
             overrides["env__perception"] = perception
         source, file_overrides = mission_source(mission, config)
-        cfg = _resolve_config(source, **{**file_overrides, **overrides})
+        cfg = _resolve_config(source, {**file_overrides, **overrides})
         problems = []
         if cfg.env.perception not in _SUPPORTED_PERCEPTION:
             problems.append(
@@ -248,13 +249,7 @@ class TruthVectorEnv(VectorEnv):
         if not self._ready:
             raise RuntimeError("TruthVectorEnv.step() called before reset(); call reset() first")
         N = self.num_envs
-        a = np.asarray(actions, dtype=np.float64)
-        if a.shape != self.action_space.shape:
-            raise ValueError(f"actions has shape {a.shape}; expected {self.action_space.shape}")
-        bad = ~np.isfinite(a).all(axis=1)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"actions[{i}]={a[i].tolist()} contains NaN or inf; expected finite values in [-1, 1]")
+        a = as_action(actions, self.action_space.shape, "actions")
         clipped = np.count_nonzero(np.abs(a) > 1.0, axis=1)
         a = np.clip(a, -1.0, 1.0)
         fresh = self._autoreset.copy()

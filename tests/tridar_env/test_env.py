@@ -193,6 +193,110 @@ def test_unknown_config_keys_fail_at_make() -> None:
         gym.make("TriDAR/FinalApproach-v0", perception="telepathy")
 
 
+@pytest.mark.parametrize(
+    ("config", "kwargs"),
+    [
+        ({"env__max_episode_steps": 10}, {}),
+        ({"env": {"max_episode_steps": 10}}, {}),
+        ({"env.max_episode_steps": 10}, {}),
+        (None, {"env__max_episode_steps": 10}),
+    ],
+    ids=["flat", "nested", "dotted", "kwarg"],
+)
+def test_config_overrides_set_the_time_limit(config: dict | None, kwargs: dict) -> None:
+    # The registered TimeLimit used to stay at the mission file's 3000 steps.
+    env = gym.make("TriDAR/FinalApproach-v0", config=config, perception="truth", **kwargs)
+    assert env.spec is not None and env.spec.max_episode_steps == 10
+    env.reset(seed=0)
+    for i in range(1, 11):
+        _, _, terminated, truncated, _ = env.step(np.zeros(3, dtype=np.float32))
+        assert not terminated and truncated == (i == 10)
+    shorter = gym.make("TriDAR/FinalApproach-v0", perception="truth", max_episode_steps=4)
+    shorter.reset(seed=0)
+    assert [shorter.step(np.zeros(3, dtype=np.float32))[3] for _ in range(4)] == [False] * 3 + [True]
+
+
+def test_vector_entry_point_takes_the_time_limit_from_the_config() -> None:
+    envs = gym.make_vec("TriDAR/FinalApproach-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                        config={"env": {"max_episode_steps": 7}}, perception="truth")
+    envs.reset(seed=0)
+    truncated = [envs.step(np.zeros((2, 3), dtype=np.float32))[3].all() for _ in range(7)]
+    assert truncated == [False] * 6 + [True]
+
+
+def test_bad_configs_at_make_are_refused_in_one_line() -> None:
+    make = gym.make
+    cases: list[tuple[dict, str]] = [
+        ({"config": {"env": 3}}, "env is 3, not a section"),  # used to drop the whole env section
+        ({"config": {"env": None}}, "env is None, not a section"),
+        ({"config": 3}, r"config=3 \(int\); expected a mission YAML path"),
+        ({"config": {1: 2}}, "override key 1 is a int"),
+        ({"config": {"render_mode": "human"}}, "render_mode: unknown key"),
+        ({"config": {"env__initial__range_m": 1e300}}, r"env.initial.range_m: got 1e\+300, expected less than"),
+        ({"config": {"env__frame_period_s": True}}, "env.frame_period_s: got True, expected a number, not a bool"),
+        ({"env__frame_period_s": "0.5"}, "env.frame_period_s: got '0.5', expected a number, not a str"),
+    ]
+    for kwargs, match in cases:
+        with pytest.raises(ConfigError, match=match) as info:
+            make("TriDAR/FinalApproach-v0", perception="truth", **kwargs)
+        assert "\n" not in str(info.value)
+
+
+def test_largest_accepted_physical_values_keep_rewards_finite() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth", config={
+        "env": {"initial": {"range_m": 1e5}, "max_range_m": 1e5, "frame_period_s": 60.0, "frame_skip": 1000,
+                "corridor_half_angle_deg": None},
+        "dynamics__chaser": {"max_thrust_n": 1e5, "dry_mass_kg": 0.1, "propellant_kg": 1e6},
+    })
+    obs, _ = env.reset(seed=0)
+    for _ in range(5):
+        obs, reward, terminated, _, info = env.step(np.ones(3, dtype=np.float32))
+        assert np.isfinite(obs).all() and np.isfinite(reward), info
+        if terminated:
+            break
+
+
+@pytest.mark.parametrize(
+    ("action", "match"),
+    [
+        (np.array([np.inf, 0, 0]), "NaN or inf"),
+        (np.array([1 + 2j, 0, 0]), "dtype complex128"),
+        (np.array([True, False, True]), "dtype bool"),
+        (["0.5", "0", "0"], "dtype <U3"),
+        ([None, 0, 0], "dtype object"),
+        ([10**400, 0, 0], "dtype object"),
+        ([[1.0], [2.0, 3.0], 0.0], "not an array of numbers"),
+        (np.zeros((3, 2)), r"shape \(3, 2\)"),
+        (0.5, r"shape \(\)"),
+        ({"x": 1}, "dtype object"),
+    ],
+)
+def test_hostile_actions_are_refused_in_one_line(action: object, match: str) -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=match) as info:
+        env.step(action)
+    assert "\n" not in str(info.value)
+    obs, *_ = env.step(np.zeros(3, dtype=np.float32))  # the refused step changed nothing
+    assert np.isfinite(obs).all() and env._steps == 1
+
+
+def test_accepted_action_forms_and_huge_values() -> None:
+    env = gym.make("TriDAR/FinalApproach-v0", perception="truth").unwrapped
+    env.reset(seed=0)
+    for action in ([0, 0, 1], np.zeros((1, 3), dtype=np.float16), np.array([[1e300], [-1e300], [0]])):
+        obs, reward, _, _, info = env.step(action)
+        assert np.isfinite(obs).all() and np.isfinite(reward)
+    assert info["clipped_actions"] == 2
+    vec = gym.make_vec("TriDAR/FinalApproach-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                       perception="truth")
+    vec.reset(seed=0)
+    for bad, match in ((np.zeros((3, 2)), "shape"), (np.full((2, 3), np.nan), "NaN"),
+                       (np.zeros((2, 3), dtype=bool), "dtype bool")):
+        with pytest.raises(ValueError, match=match):
+            vec.step(bad)
+
+
 def test_observation_never_nan_over_random_rollouts() -> None:
     for env_id in IDS:
         env = gym.make(env_id, perception="truth+noise")

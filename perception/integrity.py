@@ -29,7 +29,7 @@ from perception.geometry import skew
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["integrity_factor", "port_covariance", "protection_level", "alert_limit"]
+__all__ = ["alert_limit", "integrity_factor", "port_covariance", "protection_level", "turn_about"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -65,6 +65,32 @@ def port_covariance(
     A = -skew(a)
     C = P[0:3, 0:3] + A @ P[6:9, 0:3] + P[0:3, 6:9] @ A.T + A @ P[6:9, 6:9] @ A.T
     return 0.5 * (C + C.T)
+
+
+def turn_about(
+    cov12: npt.ArrayLike, R_sensor_target: npt.ArrayLike, r_point_target: npt.ArrayLike,
+    variance: float,
+) -> FloatArray:
+    """``cov12`` plus an isotropic attitude error of ``variance`` [rad^2] that turns the target
+    about a body point (the port) rather than about its origin.
+
+    The origin moves with such a turn (``dp = [R r]x theta``), the point does not: the result's
+    :func:`port_covariance` at ``r_point_target`` equals the input's.
+
+    Args:
+        cov12: (12, 12) covariance, layout as :func:`port_covariance`.
+        R_sensor_target: (3, 3) estimated attitude.
+        r_point_target: (3,) the pivot in the target frame [m].
+        variance: added attitude variance per axis [rad^2] (>= 0).
+    """
+    P = np.array(cov12, dtype=np.float64)
+    S = skew(np.asarray(R_sensor_target, dtype=np.float64) @ np.asarray(r_point_target, dtype=np.float64))
+    v = float(variance)
+    P[0:3, 0:3] += v * (S @ S.T)
+    P[0:3, 6:9] += v * S
+    P[6:9, 0:3] += v * S.T
+    P[6:9, 6:9] += v * np.eye(3)
+    return P
 
 
 def protection_level(cov3: npt.ArrayLike, factor: float) -> float:

@@ -28,7 +28,13 @@ from scipy.spatial.transform import Rotation
 from perception.config import ICPConfig, MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, make_T, pose_error, skew
-from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
+from perception.integrity import (
+    alert_limit,
+    integrity_factor,
+    port_covariance,
+    protection_level,
+    turn_about,
+)
 from perception.modes import FrameVerdict, ModeLogic
 from perception.numeric import median
 from perception.observability import ScanPlanner
@@ -137,6 +143,15 @@ class _Output:
     range_rate: float | None = None
     filt: PoseFilter | None = None
     n_updates: int = 0
+    ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
+    lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
+
+
+def _lever(points: FloatArray) -> float:
+    """RMS distance [m] of points from their centroid (inf for none)."""
+    if len(points) == 0:
+        return math.inf
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 class TriDAR:
@@ -200,7 +215,13 @@ class TriDAR:
         self._last_pose_t = -np.inf
         self._n_updates = 0
         self._gate_rejects = 0
+        self._rejected: list[tuple[float, FloatArray, FloatArray]] = []  # since the last update
         self._sym_checked_t = -np.inf
+        self._amb_checked_t = -np.inf
+        self._ambiguity_m = 0.0
+        # Near-symmetric turns of the track's pose the scans have not yet ruled out: None, all of
+        # them (a track that PAH started from nothing); empty for a track that carries a prior.
+        self._twins_open: set[int] | None = set()
         self._sym_votes = 0
         self._sym_candidate = -1
         self._lost_track: PoseFilter | None = None
@@ -434,12 +455,18 @@ class TriDAR:
                 self.filter.initialize(t_ref, res.T_sensor_target, self._measurement_cov(res))
             self._lost_track = None
             self._gate_rejects = 0
+            self._rejected = []
             self._n_updates = 1
+            # PAH's answer may be a twin of the truth until the scans rule the twins out; a seed or
+            # the lost track's prediction already has (the track's continuity carries that on).
+            self._twins_open = None if from_pah else set()
+            self._ambiguity_m = 0.0
             self._last_pose_t = t_ref
             self.stats.acquisitions.append((self._search_started, t))
             self._search_started = None
             self.logic.go(t, Mode.TRACKING, f"acquired (fitness {res.fitness:.2f})")
             out = _Output(self.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
+                          lever_m=_lever(cloud.points),
                           bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
                           filt=self.filter.copy(), n_updates=self._n_updates)
         elif not admitted:
@@ -518,16 +545,25 @@ class TriDAR:
             upd = f.update(t_ref, res.T_sensor_target, cov)
             if upd.accepted:
                 self._gate_rejects = 0
+                self._rejected = []
                 self._n_updates += 1
                 self._last_pose_t = t_ref
             else:
                 # The registration is sound but the filter disagrees: an unmodelled manoeuvre or an
-                # overconfident filter. After a few such frames, restart the filter on the
-                # measurements (keeping the rates) rather than dropping a good track.
+                # overconfident filter. After a few such frames that agree with one another,
+                # restart the filter on them (keeping the rates) rather than dropping a good track.
+                # Rejected registrations that disagree with one another as well (ICP in another
+                # basin each frame: the roll of a near-cylindrical bus 20-40 deg off under a 2 deg
+                # sigma) are not a track to restart on: they count towards loss of track.
                 self._gate_rejects += 1
+                self._rejected = [*self._rejected, (t_ref, res.T_sensor_target, cov)]
+                self._rejected = self._rejected[-self.pc.filter_reinit_frames:]
+                restart = None
                 if self._gate_rejects >= self.pc.filter_reinit_frames and not res.degenerate_axes:
-                    v_origin = f.target_state()[1]
-                    f.initialize(t_ref, res.T_sensor_target, cov, velocity=v_origin, omega=f.w)
+                    restart = self._restart_on_rejected(f)
+                if restart is not None:
+                    self.filter = f = restart
+                    self._rejected = []
                     self.stats.filter_reinits += 1
                     self._gate_rejects = 0
                     self._n_updates = 1
@@ -535,17 +571,33 @@ class TriDAR:
                 else:
                     verdict = self.logic.judge(True, res.fitness, res.inlier_rmse, expected,
                                                res.T_sensor_target, None, filter_accepted=False)
-        if verdict.good and self.pc.symmetry_check_period_s is not None and self._n_updates > 0 \
-                and t_ref - self._sym_checked_t >= self.pc.symmetry_check_period_s - 1e-9:
-            self._sym_checked_t = t_ref
-            self._check_symmetry(pts, cloud, res, t_ref, icp_cfg)
+        if verdict.good and self._n_updates > 0:
+            self._monitor_twins(pts, cloud, res, t_ref, icp_cfg)
         lost = self.logic.record(t, verdict)
         self._after_loss(lost, t)
         out = _Output(self.busy_until, self.logic.mode, "pose" if self.logic.mode == Mode.TRACKING else "none",
-                      t_ref, n, fitness=res.fitness, filt=f.copy(), n_updates=self._n_updates)
+                      t_ref, n, fitness=res.fitness, filt=f.copy(), n_updates=self._n_updates,
+                      ambiguity_m=self._ambiguity_m, lever_m=_lever(pts))
         bfix = self._bearing_fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         self._outputs.append(out)
+
+    def _restart_on_rejected(self, f: PoseFilter) -> PoseFilter | None:
+        """A filter restarted on the registrations the gate rejected in a row (keeping ``f``'s
+        rates and their covariance: the motion between the frames is the track's), if each of
+        them passes the gate of the one restarted on those before it; else None."""
+        v_origin = f.target_state()[1]
+        g = f.copy()
+        (t0, T0, C0), *rest = self._rejected
+        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w)
+        P = g.P.copy()
+        for rates in (slice(3, 6), slice(9, 12)):
+            P[rates, rates] = f.P[rates, rates]
+        g.P = P
+        for t_k, T_k, C_k in rest:
+            if not g.update(t_k, T_k, C_k).accepted:
+                return None
+        return g
 
     def _outline_refine(self, res: RegistrationResult, pts: FloatArray, cloud: PointCloud) -> RegistrationResult:
         """Where ICP left axes unobserved, add what the scan says about the outline.
@@ -587,42 +639,70 @@ class TriDAR:
         return dataclasses.replace(ref, fitness=res.fitness, inlier_rmse=res.inlier_rmse,
                                    n_inliers=res.n_inliers, time_s=res.time_s + ref.time_s)
 
-    def _check_symmetry(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
-                        t_ref: float, icp_cfg: ICPConfig) -> None:
-        """Ambiguity monitor (tracking): is a near-symmetric turn of the tracked pose better?
+    def _monitor_twins(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
+                       t_ref: float, icp_cfg: ICPConfig) -> None:
+        """Ambiguity monitor (tracking): does a near-symmetric turn of the tracked pose explain
+        the scan as well, or better?
 
-        ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model; a converged
-        alternative whose PAH score (:meth:`~perception.pah.PAHDatabase.verify_poses`) beats the
-        tracked pose's by ``symmetry_margin``
-        gets a vote, and ``symmetry_switch_checks`` votes in a row for the same turn move the
-        track there (the filter restarts on it, keeping its rates). A track that locked onto the
-        flipped twin of a nearly symmetric target at 60 m, where the features that tell them
-        apart are a few noisy points, is put right once they are resolved.
+        ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model (PAH's near-symmetry
+        search) and the converged alternatives are scored as PAH ranks hypotheses
+        (:meth:`~perception.pah.PAHDatabase.verify_poses`). Two uses, on their own schedules:
+
+        - integrity (``integrity.ambiguity_check_period_s``, and on every new track's first
+          ``confirm_frames`` frames): while a twin scores within ``ambiguity_margin`` of the
+          tracked pose, or above it, the scan cannot tell them apart and the port may be where the
+          twin puts it: the protection level grows by the port's offset between the two poses
+          (a roll twin of a nearly symmetric bus, locked at acquisition, was 0.45 m off at 10-15 m
+          under a 3 cm protection level);
+        - switching (``symmetry_check_period_s``): a twin whose score beats the tracked pose's by
+          ``symmetry_margin`` gets a vote, and ``symmetry_switch_checks`` votes in a row for the
+          same turn move the track there (the filter restarts on it, keeping its rates). A track
+          that locked onto the flipped twin of a nearly symmetric target at 60 m, where the
+          features that tell them apart are a few noisy points, is put right once they are
+          resolved.
         """
+        ig = self.pc.integrity
+        amb_due = ig.ambiguity_check_period_s is not None and self._twins_open != set() and (
+            self._n_updates <= ig.confirm_frames
+            or t_ref - self._amb_checked_t >= ig.ambiguity_check_period_s - 1e-9)
+        sym_due = self.pc.symmetry_check_period_s is not None and \
+            t_ref - self._sym_checked_t >= self.pc.symmetry_check_period_s - 1e-9
+        if not (amb_due or sym_due):
+            return
+        G = self.pah.near_symmetries()
+        if amb_due:
+            self._amb_checked_t = t_ref
+        if sym_due:
+            self._sym_checked_t = t_ref
+        if len(G) == 0:
+            self._twins_open, self._ambiguity_m = set(), 0.0
+            return
         self.stats.symmetry_checks += 1
-        pah = self.pah
-        G = pah.near_symmetries()
+        score0, alts = self._twins(pts, cloud, res, icp_cfg, G)
         T = res.T_sensor_target
-        sigma, dirs = cloud.sigma, cloud.directions
-        fit, score = pah.verify_poses(pts, sigma, np.concatenate([T[None], T @ G]), dirs)
-        # Turns that show the sensor another side of the target explain little even before ICP:
-        # only the near-fits are polished (with capped work: a turn that is not a better basin
-        # need not converge) and scored again.
-        cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
-        alts: list[tuple[int, RegistrationResult]] = []
-        for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):
-            alt = icp(pts, self.model, T @ G[i], sigma=sigma, directions=dirs, config=cfg)
-            if alt.converged:
-                alts.append((int(i), alt))
-        best_i, best_res = -1, None
-        if alts:
-            _, s_alt = pah.verify_poses(pts, sigma, np.stack([a.T_sensor_target for _, a in alts]), dirs)
-            k = int(np.argmax(s_alt))
-            if s_alt[k] > score[0] + self.pc.symmetry_margin:
-                best_i, best_res = alts[k]
-        if best_res is None:
+        if amb_due:
+            # A twin stays open while it explains the scan about as well (or better); one that
+            # explains it clearly worse, or does not converge, is ruled out for this track.
+            # The mission's approach corridor, where configured, rules out a twin as PAH's search
+            # does (a plate flipped about an in-plane axis is the same solid, port behind it).
+            corridor = self._constraint()
+            close = {i: a for i, a, s_alt in alts if s_alt >= score0 - ig.ambiguity_margin
+                     and (corridor is None or corridor.admits(a.T_sensor_target))}
+            prev = set(range(len(G))) if self._twins_open is None else self._twins_open
+            self._twins_open = prev & set(close)
+            r = self.model_target.T_target_port[:3, 3]
+            port = T[:3, :3] @ r + T[:3, 3]
+            self._ambiguity_m = max(
+                (float(np.linalg.norm(close[i].T_sensor_target[:3, :3] @ r
+                                      + close[i].T_sensor_target[:3, 3] - port))
+                 for i in self._twins_open), default=0.0)
+        if not sym_due:
+            return
+        best = max(alts, key=lambda a: a[2], default=None)
+        if best is None or best[2] <= score0 + self.pc.symmetry_margin:
             self._sym_votes, self._sym_candidate = 0, -1
             return
+        best_i, best_res, _ = best
         self._sym_votes = self._sym_votes + 1 if best_i == self._sym_candidate else 1
         self._sym_candidate = best_i
         if self._sym_votes < self.pc.symmetry_switch_checks:
@@ -636,6 +716,30 @@ class TriDAR:
         self.stats.symmetry_switches += 1
         self._sym_votes, self._sym_candidate = 0, -1
         self._n_updates = max(self._n_updates, 3)
+        # The old pose is now a twin (clearly worse); the others are judged again from here.
+        self._twins_open, self._amb_checked_t = None, -np.inf
+
+    def _twins(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult, icp_cfg: ICPConfig,
+               G: FloatArray) -> tuple[float, list[tuple[int, RegistrationResult, float]]]:
+        """The tracked pose's PAH score and the converged near-symmetric alternatives
+        ``(turn index, registration, score)``."""
+        pah = self.pah
+        T = res.T_sensor_target
+        sigma, dirs = cloud.sigma, cloud.directions
+        fit, score = pah.verify_poses(pts, sigma, np.concatenate([T[None], T @ G]), dirs)
+        # Turns that show the sensor another side of the target explain little even before ICP:
+        # only the near-fits are polished (with capped work: a turn that is not a better basin
+        # need not converge) and scored again.
+        cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
+        alts: list[tuple[int, RegistrationResult]] = []
+        for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):
+            alt = icp(pts, self.model, T @ G[i], sigma=sigma, directions=dirs, config=cfg)
+            if alt.converged:
+                alts.append((int(i), alt))
+        if not alts:
+            return float(score[0]), []
+        _, s_alt = pah.verify_poses(pts, sigma, np.stack([a.T_sensor_target for _, a in alts]), dirs)
+        return float(score[0]), [(i, a, float(s)) for (i, a), s in zip(alts, s_alt)]
 
     def _after_loss(self, lost: bool, t: float) -> None:
         if lost:
@@ -688,13 +792,19 @@ class TriDAR:
             r_port = self.target.T_target_port[:3, 3]
             port_rng = float(np.linalg.norm(fp + fR @ r_port))
             fP = fP.copy()
-            fP.flat[0:36:13] += max(ig.bias_m, ig.bias_rad * port_rng) ** 2
+            # The correlated displacement b of the scanned surface turns the registration by up
+            # to b over the scan's lever arm: published on the attitude as the position's is,
+            # as a turn about the port (the origin moves with it; the port's bound does not).
+            bias = max(ig.bias_m, ig.bias_rad * port_rng)
+            fP.flat[0:36:13] += bias**2
+            fP = turn_about(fP, fR, r_port, (bias / max(out.lever_m, 1e-3)) ** 2)
             for a in blocks:
                 for b in blocks:
                     cov[a, b] = fP[a, b]
             # Integrity: the port's error bound from the filter's full pose covariance (the
             # unobservable directions of the registrations grow there, not in the floors).
             pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
+            pl += out.ambiguity_m  # the port may be where a twin the scan allows puts it
             al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
             kw.update(protection_level=pl, alert_limit=al)
             # A track is trusted once confirmed by a few accepted frames (its rates estimated; an

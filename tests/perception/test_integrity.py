@@ -10,7 +10,13 @@ from scipy.stats import chi2
 
 from perception.config import ScanPlanConfig, load_config
 from perception.geometry import make_T
-from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
+from perception.integrity import (
+    alert_limit,
+    integrity_factor,
+    port_covariance,
+    protection_level,
+    turn_about,
+)
 from perception.observability import ScanPlanner, predict_information
 from perception.pipeline import TriDAR, approach_pose
 from perception.registration import FAILURE_VARIANCE, covariance_from_information, icp
@@ -211,3 +217,27 @@ def test_a_plate_whose_edges_are_in_view_is_placed_by_its_outline() -> None:
         target, 4.0, pipeline__scan_plan__mode="range", pipeline__outline_refinement=False
     )
     assert tracked[-1].valid.degraded
+
+
+def test_a_turn_about_the_port_leaves_the_port_bound_and_is_what_monte_carlo_says() -> None:
+    """turn_about: sampled turns of the target about its port move the origin by theta x (R r)
+    and the port not at all; the covariance it adds is that of the samples."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(12, 12))
+    P = A @ A.T * 1e-4
+    R = Rotation.random(random_state=3).as_matrix()
+    r = np.array([0.4, -1.5, 2.5])
+    var = 0.02**2
+    Q = turn_about(P, R, r, var)
+    np.testing.assert_allclose(port_covariance(Q, R, r), port_covariance(P, R, r), atol=1e-15)
+    assert np.linalg.eigvalsh(Q - P).min() > -1e-15
+    # Monte Carlo: small turns theta about the port; the origin at port - R_new r.
+    theta = rng.normal(scale=np.sqrt(var), size=(200_000, 3))
+    a = R @ r
+    d_origin = -(Rotation.from_rotvec(theta).apply(a) - a)  # the origin's displacement
+    X = np.hstack([d_origin, theta])
+    C = np.cov(X.T)
+    added = (Q - P)[np.ix_([0, 1, 2, 6, 7, 8], [0, 1, 2, 6, 7, 8])]
+    np.testing.assert_allclose(C, added, atol=3e-3 * np.abs(added).max())

@@ -359,3 +359,91 @@ def test_a_dense_cad_target_is_tracked_on_its_simplified_model(tmp_path) -> None
     assert len(errs) >= 20
     assert max(e[0] for e in errs) < 0.03 and max(e[1] for e in errs) < 1.0, errs
     assert tri.planner is not None and tri.planner.model is tri.model
+
+
+@pytest.mark.parametrize("consistent", [True, False])
+def test_the_filter_restarts_only_on_rejected_registrations_that_agree(monkeypatch,
+                                                                        consistent: bool) -> None:
+    """From frame 15 ICP returns poses turned 20 deg about the boresight, confidently (as on a
+    near-cylindrical bus whose roll has several basins). Turned the same way every frame (the
+    target really is there), the gate's rejections restart the filter on them; turned by a
+    different angle each frame, they are not a track: no restart, the track is lost and no
+    published valid pose is wrong beyond its protection level."""
+    import dataclasses as dc
+
+    import perception.pipeline as pipeline_module
+
+    orig = pipeline_module.icp
+    calls = {"n": 0}
+    cfg = load_config("final_approach", pipeline__use_corridor=False,
+                      pipeline__integrity__ambiguity_check_period_s=None)
+    target = load_target(cfg.target.name)
+    fly = Fly(approach_pose(cfg, target, 8.0))  # a still target
+
+    def skewed(*a, **k):
+        res = orig(*a, **k)
+        calls["n"] += 1
+        if calls["n"] < 15:
+            return res
+        angle = 20.0 if consistent else (20.0 if calls["n"] % 2 else -25.0)
+        turn = make_T(Rotation.from_euler("z", angle, degrees=True).as_matrix())
+        return dc.replace(res, T_sensor_target=turn @ fly.T(0.0))
+
+    monkeypatch.setattr(pipeline_module, "icp", skewed)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(3))
+    hist = _run(tri, fly, 40, hook=lambda k, t: tri.seed_pose(fly.T(t), t) if k == 0 else None)
+    if consistent:
+        assert tri.stats.filter_reinits == 1 and tri.stats.losses == 0
+        T_seen = make_T(Rotation.from_euler("z", 20.0, degrees=True).as_matrix()) @ fly.T(0.0)
+        e_m, e_deg = pose_error(hist[-1][1].T_sensor_target, T_seen)
+        assert e_deg < 0.5 and e_m < 0.02
+    else:
+        assert tri.stats.filter_reinits == 0 and tri.stats.losses >= 1
+        r = target.T_target_port[:3, 3]
+        for t, sv in hist:
+            if sv.valid.pose:
+                T, Tt = sv.T_sensor_target, fly.T(t)
+                err = np.linalg.norm(T[:3, :3] @ r + T[:3, 3] - Tt[:3, :3] @ r - Tt[:3, 3])
+                assert err < sv.protection_level, (t, err, sv.protection_level)
+
+
+@pytest.mark.parametrize("monitor", [True, False])
+def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monitor: bool) -> None:
+    """PAH answers with the half-turn twin of the CYGNSS-like bus (the wings and bus fit; the
+    boom and star tracker say otherwise). Without switching, the track stays there. The twin
+    monitor finds the truth explaining the scan at least as well, keeps that twin open and widens
+    the protection level by the port's offset between the two: the wrong pose is never published
+    valid with an error beyond its bound. Without the monitor it is (hazardously misleading)."""
+    cfg = load_config("tumbling_target", pipeline__symmetry_check_period_s=None,
+                      pipeline__integrity__ambiguity_check_period_s=0.4 if monitor else None)
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(4))
+    fly = Fly(approach_pose(cfg, target, 5.0, lateral=(0.05, -0.03)))
+    r = target.T_target_port[:3, 3]
+    # The half turn that moves the port most (0.54 m: about an axis across the port's).
+    G = tri.pah.near_symmetries()
+    flip = max(G, key=lambda g: np.linalg.norm(g[:3, :3] @ r + g[:3, 3] - r))
+    assert np.trace(flip[:3, :3]) < -0.9
+
+    def localize(self, points, rng, **kwargs):
+        T_twin = fly.T(0.0) @ flip
+        return icp(points, tri.model, T_twin, sigma=kwargs.get("sigma", 0.003),
+                   directions=kwargs.get("directions"))
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "localize", localize)
+    hist = _run(tri, fly, 30)
+    port_true = fly.T(0.0)[:3, :3] @ r + fly.T(0.0)[:3, 3]
+    tracked = [sv for _, sv in hist if sv.valid.position]
+    assert len(tracked) >= 20
+    err = np.array([np.linalg.norm(sv.T_sensor_target[:3, :3] @ r + sv.T_sensor_target[:3, 3] - port_true)
+                    for sv in tracked])
+    assert np.median(err) > 0.3  # the track sits on the twin
+    misleading = [e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked)]
+    if monitor:
+        assert not any(misleading)
+        assert all(sv.valid.degraded for sv in tracked)
+        assert tri._ambiguity_m > 0.3
+    else:
+        assert np.mean(misleading) > 0.5

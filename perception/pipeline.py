@@ -27,7 +27,14 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import ICPConfig, MissionConfig
 from perception.filter import EgoMotion, PoseFilter, RangeFilter
-from perception.geometry import check_rigid, cross_rows, fast_matrix_to_quat, make_T, pose_error, skew
+from perception.geometry import (
+    check_rigid,
+    cross_rows,
+    fast_matrix_to_quat,
+    make_T,
+    pose_error,
+    skew,
+)
 from perception.integrity import (
     alert_limit,
     integrity_factor,

@@ -399,7 +399,7 @@ class CorridorConfig(StrictModel):
 
 
 class IntegrityConfig(StrictModel):
-    """What a published pose promises (:mod:`perception.integrity`)."""
+    """What a published pose promises (:mod:`perception.pipeline.integrity`)."""
 
     risk: Annotated[Float, Field(gt=0, lt=0.5)] = Field(
         1e-5, description="probability that the port position error exceeds the protection level"
@@ -437,7 +437,7 @@ class IntegrityConfig(StrictModel):
 
 
 class ScanPlanConfig(StrictModel):
-    """Observability-aware choice of the tracking region (:mod:`perception.observability`)."""
+    """Observability-aware choice of the tracking region (:mod:`perception.pipeline.observability`)."""
 
     mode: Literal["range", "observability"] = Field(
         "observability", description="range: seed 000's regions by range; observability: the candidate "
@@ -510,7 +510,7 @@ class PipelineConfig(StrictModel):
     )
     ego_motion: StrictBool = Field(
         False,
-        description="fuse the host's gyro and accelerometer (perception.filter.EgoMotion) into the "
+        description="fuse the host's gyro and accelerometer (perception.pipeline.filter.EgoMotion) into the "
         "relative-motion filter, so that the chaser's own rotation and thrust are not process noise",
     )
     target_rotation: Literal["constant_rate", "torque_free"] = Field(

@@ -20,7 +20,7 @@ from perception.config import (
     short_repr,
 )
 from perception.geometry import fast_cross, fast_matrix_to_quat, fast_quat_to_matrix, invert
-from perception.state import Mode, StateVector, Validity
+from perception.pipeline.state import Mode, StateVector, Validity
 from perception.targets import TargetModel, load_target
 from tridar_env.observers import Observer, make_observer
 from tridar_env.world import ContactState, World

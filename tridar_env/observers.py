@@ -4,7 +4,7 @@
 truth scene; ``"truth"`` hands over the exact relative state (for ablations and fast training) and
 ``"truth+noise"`` adds Gaussian errors with the configured standard deviations (optionally
 correlated in time and applied about the docking port). All three return
-the same :class:`~perception.state.StateVector`, so policies and controllers cannot tell the
+the same :class:`~perception.pipeline.state.StateVector`, so policies and controllers cannot tell the
 plumbing apart, only the quality.
 """
 
@@ -19,8 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.geometry import fast_matrix_to_quat
-from perception.integrity import alert_limit, integrity_factor, port_covariance, protection_level
-from perception.state import Mode, StateVector, Validity
+from perception.pipeline.integrity import alert_limit, integrity_factor, port_covariance, protection_level
+from perception.pipeline.state import Mode, StateVector, Validity
 from perception.targets import TargetModel
 from tridar_env.world import SensorTruth, World
 

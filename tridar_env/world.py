@@ -1,6 +1,6 @@
 """The truth simulation behind the environment: relative orbit, target and chaser attitude, mass.
 
-Everything here is truth. The environment hands the sensor a :class:`~perception.state.TruthScene`
+Everything here is truth. The environment hands the sensor a :class:`~perception.pipeline.state.TruthScene`
 built from it and exposes it in ``info`` for logging; observations never read it directly.
 
 Frames: LVLH/Hill of the target (origin at the target centre of mass; x radial, y along-track,
@@ -24,10 +24,10 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.filter import EgoMotion
+from perception.pipeline.filter import EgoMotion
 from perception.geometry import fast_cross, fast_invert, fast_quat_to_matrix, make_T, rotation_z
-from perception.sensors.motion import RelativeMotion
-from perception.state import TruthScene
+from perception.sensing.sensors.motion import RelativeMotion
+from perception.pipeline.state import TruthScene
 from perception.targets import TargetModel
 from tridar_env.dynamics import (
     ChaserMass,

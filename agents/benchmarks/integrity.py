@@ -16,7 +16,7 @@ protection level (PL), alert limit (AL) and the degraded flag:
 * **HMI** (hazardously misleading): a valid pose (``valid.pose``: not degraded) whose port error
   exceeds its PL;
 * **MI** (misleading): any published pose, degraded or not, whose port error exceeds its PL;
-* **NEES** of the port position (3 dof, from :func:`perception.integrity.port_covariance` of the
+* **NEES** of the port position (3 dof, from :func:`perception.pipeline.integrity.port_covariance` of the
   published covariance) and of the attitude (3 dof, block ``[6:9, 6:9]``, rotation-vector error).
   The 95 % band printed is that of a mean of ``n`` independent chi-square(3) values
   (``chi2_{3n}.ppf / n``); successive frames of a track are strongly correlated, so the true band
@@ -198,7 +198,7 @@ def fly(env: Any, seed: int, controller: str = "glideslope", max_steps: int | No
 
     from agents.controllers import make_controller
     from perception.geometry import fast_quat_to_matrix
-    from perception.integrity import port_covariance
+    from perception.pipeline.integrity import port_covariance
 
     base = env.unwrapped
     policy = make_controller(controller, base.cfg)

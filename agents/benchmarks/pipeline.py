@@ -34,8 +34,8 @@ from agents.benchmarks.timing import format_table
 from perception.config import MissionConfig, flatten_overrides, load_config
 from perception.geometry import invert, make_T, pose_error
 from perception.pipeline import TriDAR, approach_pose
-from perception.sensors.motion import RelativeMotion
-from perception.state import Mode, TruthScene
+from perception.sensing.sensors.motion import RelativeMotion
+from perception.pipeline.state import Mode, TruthScene
 from perception.targets import TargetModel, load_target
 from tridar_env.dynamics import RigidBodyAttitude, spin_with_nutation
 

@@ -1,6 +1,6 @@
 """ICP tracking on TriDAR frames: time, error and ratio to the Cramer-Rao bound, next to peers.
 
-Frames are 1,000-point rosette scans from :class:`perception.sensors.TriDARSensor`, steered onto
+Frames are 1,000-point rosette scans from :class:`perception.sensing.sensors.TriDARSensor`, steered onto
 the target (the pattern's field of view sized to the target's angular extent). The target drifts
 and turns a little between frames and each frame is tracked from the previous frame's estimate.
 Open3D point-to-plane ICP and small_gicp (when importable; benchmark-only extras) run on the same
@@ -159,9 +159,9 @@ def run(args: argparse.Namespace) -> int:
     from agents.benchmarks.timing import Timing, format_table
     from perception.config import SensorConfig
     from perception.geometry import make_T, pose_error
-    from perception.registration import icp, prepare_model
-    from perception.scan_patterns import rosette
-    from perception.sensors import TriDARSensor
+    from perception.estimation.registration import icp, prepare_model
+    from perception.sensing.scan_patterns import rosette
+    from perception.sensing.sensors import TriDARSensor
     from perception.targets import load_target
 
     if getattr(args, "no_tracking", False):
@@ -314,9 +314,9 @@ def run_acquisition(args: argparse.Namespace) -> None:
     from agents.benchmarks.timing import Timing, format_table
     from perception.config import SensorConfig
     from perception.geometry import make_T, pose_error
-    from perception.pah import PAHDatabase, PoseConstraint
-    from perception.registration import prepare_model
-    from perception.sensors import TriDARSensor
+    from perception.estimation.pah import PAHDatabase, PoseConstraint
+    from perception.estimation.registration import prepare_model
+    from perception.sensing.sensors import TriDARSensor
     from perception.targets import load_target
 
     n_cases = 20 if args.quick else int(args.acq_cases)

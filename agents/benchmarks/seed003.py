@@ -5,13 +5,13 @@ Zhao, Xu and Bo (Sensors 2018) section 3: a CYGNSS-like target (3.55 x 1.10 x 0.
 10 m (1 m per frame) while the target rolls from 125 to -125 deg (5 deg per frame). Experiment 2
 adds a pitch from 10 to 0 deg and a lateral offset y from 10 to 0 m (0.2 per frame). Poses are
 written in the seed's frames (X toward the target, Y right, Z down; roll about X) and converted
-with :func:`perception.linetrack.T_from_seed_pose`; errors are reported back in those frames.
+with :func:`perception.estimation.linetrack.T_from_seed_pose`; errors are reported back in those frames.
 
 Trackers, each initialised on frame 1 from truth plus a small random error (the seed uses its own
 global method there) and then run frame to frame from its previous estimate:
 
 - ``ICP``: point-to-point ICP on the full cloud (the seed's baseline), seed ICP settings;
-- ``Proposed``: :class:`perception.linetrack.LineRollTracker` (line roll prior, adaptive voxel
+- ``Proposed``: :class:`perception.estimation.linetrack.LineRollTracker` (line roll prior, adaptive voxel
   grid, point-to-point ICP);
 - ``P2Plane``: our default ICP (point-to-plane, :class:`~perception.config.ICPConfig` defaults) on
   a uniform random subset of the flash cloud (``--plane-points``, TriDAR-like sparse sensing);
@@ -22,7 +22,7 @@ global method there) and then run frame to frame from its previous estimate:
   constant-velocity prediction (the last frame-to-frame motion repeated, what the pipeline's
   filter supplies) on the same uniform subset as ``P2Plane``;
 - ``P2Plane+CV+outline`` (extra row): ``P2Plane+CV+rays``, then
-  :func:`perception.silhouette.refine_pose`: one Gauss-Newton on the surface rows of the same
+  :func:`perception.estimation.silhouette.refine_pose`: one Gauss-Newton on the surface rows of the same
   subset and on the flash frame's *outline* (every valid pixel next to an invalid one: the model's
   outline, found by casting rays along the pair, must cross between them). The CYGNSS bus and
   wings are plates seen nearly face-on, so point-to-plane ICP has next to no information about
@@ -30,7 +30,7 @@ global method there) and then run frame to frame from its previous estimate:
   frames; they were the 5-8 mm and 0.24 deg spikes of ``P2Plane+CV+rays``); the outline fixes
   them, to the pixel quantisation of the edges (``--outline-points``, ``--outline-pairs``);
 - ``P2Plane+EKF+outline`` (extra row): the same refinement (from the prediction, no ICP first)
-  inside the pipeline's :class:`perception.filter.PoseFilter` (the pipeline's default process
+  inside the pipeline's :class:`perception.pipeline.filter.PoseFilter` (the pipeline's default process
   noise), which
   fuses each frame's pose with the refinement's covariance. That covariance counts an edge
   running with the pixel grid (roll 0, +-45, +-90 deg: all edges of a box) once, not once per
@@ -120,7 +120,7 @@ def seed_errors(T_est: FloatArray, T_true: FloatArray) -> tuple[FloatArray, Floa
         Euler differences); and the total rotation angle between the two attitudes [deg].
     """
     from perception.geometry import pose_error
-    from perception.linetrack import seed_pose_from_T
+    from perception.estimation.linetrack import seed_pose_from_T
 
     p_e, a_e = seed_pose_from_T(T_est)
     p_t, a_t = seed_pose_from_T(T_true)
@@ -172,7 +172,7 @@ class PlainICP:
         self.directions: FloatArray | None = None  # measured rays of the points being run
 
     def _run(self, points: FloatArray, T0: FloatArray) -> Step:
-        from perception.registration import icp
+        from perception.estimation.registration import icp
 
         t0 = time.perf_counter()
         res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
@@ -263,7 +263,7 @@ class PredictedRayPlaneICP(SparsePlaneICP):
 class OutlineRayPlaneICP(PredictedRayPlaneICP):
     """:class:`PredictedRayPlaneICP`, then a joint refinement with the frame's outline.
 
-    ICP's pose is refined by :func:`perception.silhouette.refine_pose`: surface rows on the same
+    ICP's pose is refined by :func:`perception.estimation.silhouette.refine_pose`: surface rows on the same
     subset (each point on the face its ray crosses) and outline rows from the flash frame's
     valid/invalid pixel pairs, which fix the in-plane position and the roll that the plates of a
     face-on target leave unconstrained in point-to-plane ICP.
@@ -285,8 +285,8 @@ class OutlineRayPlaneICP(PredictedRayPlaneICP):
         return cloud.points[self._idx]
 
     def _run(self, points: FloatArray, T0: FloatArray) -> Step:
-        from perception.registration import icp
-        from perception.silhouette import refine_pose
+        from perception.estimation.registration import icp
+        from perception.estimation.silhouette import refine_pose
 
         t0 = time.perf_counter()
         converged = True
@@ -309,7 +309,7 @@ class FilteredOutlineICP(OutlineRayPlaneICP):
     A single frame cannot place an edge that runs with the pixel grid better than its pixel
     pitch (every pair along it has the same sub-pixel phase; at 53 m that is +-19 mm per edge,
     and a box-shaped target at roll 0, +-45 or +-90 deg has only such edges).
-    :class:`perception.filter.PoseFilter` (constant velocity and rate, the pipeline's default
+    :class:`perception.pipeline.filter.PoseFilter` (constant velocity and rate, the pipeline's default
     process noise from :class:`~perception.config.PipelineConfig`) fuses each frame's refined
     pose with the refinement's covariance, which counts such a group of parallel edges once; the
     filter's posterior is the estimate and its prediction starts the next frame (no ICP: the
@@ -322,7 +322,7 @@ class FilteredOutlineICP(OutlineRayPlaneICP):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         from perception.config import PipelineConfig
-        from perception.filter import PoseFilter
+        from perception.pipeline.filter import PoseFilter
 
         super().__init__(*args, **kwargs)
         pc = PipelineConfig()
@@ -363,7 +363,7 @@ class FilteredOutlineICP(OutlineRayPlaneICP):
 
 
 class Proposed:
-    """Adapter of :class:`perception.linetrack.LineRollTracker` to :class:`Step`."""
+    """Adapter of :class:`perception.estimation.linetrack.LineRollTracker` to :class:`Step`."""
 
     def __init__(self, tracker: Any) -> None:
         self.tracker = tracker
@@ -419,8 +419,8 @@ def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse
     """The trackers of ``names``, each drawing its point subsets from its own generator, seeded by
     ``(seed, experiment, method)``: a row's numbers do not depend on which other rows run."""
     from perception.config import ICPConfig
-    from perception.linetrack import LineRollTracker, seed003_icp_config
-    from perception.registration import prepare_model
+    from perception.estimation.linetrack import LineRollTracker, seed003_icp_config
+    from perception.estimation.registration import prepare_model
 
     sigma = flash_cfg.range_error_m / math.sqrt(3.0)
     out: dict[str, Tracker] = {}
@@ -437,7 +437,7 @@ def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse
                 target, q_lines=args.q_lines, d_model=args.d_model, flash=flash_cfg,
                 icp_config=ICPConfig(max_correspondence_m=2.0)))
         elif name in ("P2Plane+CV+outline", "P2Plane+EKF+outline"):
-            from perception.silhouette import FlashGeometry
+            from perception.estimation.silhouette import FlashGeometry
 
             cfg = ICPConfig(match_along_rays=True)
             cls = OutlineRayPlaneICP if name == "P2Plane+CV+outline" else FilteredOutlineICP
@@ -458,8 +458,8 @@ def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse
 def run_experiment(experiment: int, args: argparse.Namespace) -> dict[str, Run]:
     """Simulate one experiment's frames and track them with every requested method."""
     from perception.config import FlashLidarConfig
-    from perception.linetrack import T_from_seed_pose
-    from perception.sensors import FlashLidar
+    from perception.estimation.linetrack import T_from_seed_pose
+    from perception.sensing.sensors import FlashLidar
     from perception.targets import load_target
 
     target = load_target("cygnss")
@@ -619,7 +619,7 @@ def run(args: argparse.Namespace) -> int:
     from agents.benchmarks.timing import format_table
     from agents.outputs import check_folder, claim_folder
     from perception.config import FlashLidarConfig, ICPConfig
-    from perception.linetrack import seed003_icp_config
+    from perception.estimation.linetrack import seed003_icp_config
 
     out: Path = args.out
     check_folder(out, "bench-seed003")  # before the work: its own files only

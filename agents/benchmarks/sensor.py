@@ -18,7 +18,7 @@ import numpy as np
 from agents.benchmarks.timing import Timing
 
 if TYPE_CHECKING:
-    from perception.sensors import FlashLidar, TriDARSensor
+    from perception.sensing.sensors import FlashLidar, TriDARSensor
     from perception.targets import TargetModel
 
 
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from perception.config import FlashLidarConfig, SensorConfig
-    from perception.sensors import FlashLidar, TriDARSensor
+    from perception.sensing.sensors import FlashLidar, TriDARSensor
     from perception.targets import load_target
     from agents.benchmarks.timing import format_table
 
@@ -63,7 +63,7 @@ def _target_rows(
     from scipy.spatial.transform import Rotation
 
     from perception.geometry import make_T
-    from perception.scan_patterns import angles_to_directions
+    from perception.sensing.scan_patterns import angles_to_directions
     name = target.name
     rows: list[dict[str, object]] = []
     size = float(np.max(target.extents))

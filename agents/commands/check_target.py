@@ -10,7 +10,7 @@ c. **observability map**: at distances to go along the nominal approach (docking
    the sensor sits behind the interface, where the chaser mounts it), the predicted 1-sigma bound of one
    tracking frame at the docking port (position) and on the attitude, for the region the mission's
    scan strategy picks and for the one the observability planner would pick
-   (:mod:`perception.observability`), which axes are unobserved, and whether the predicted
+   (:mod:`perception.pipeline.observability`), which axes are unobserved, and whether the predicted
    protection level exceeds the alert limit (the pose would be published degraded);
 d. **closed loop** (unless ``--no-campaign``): ``--runs`` approaches of the stock ``final_approach``
    mission with the glideslope controller on truth and as many on the full pipeline, with the
@@ -170,12 +170,12 @@ def observability_map(cfg: Any, target: Any, ranges_m: tuple[float, ...] = MAP_R
     """
     import numpy as np
 
-    from perception.integrity import alert_limit, integrity_factor
-    from perception.modes import ModeLogic
-    from perception.observability import ScanPlanner, predict_information
+    from perception.pipeline.integrity import alert_limit, integrity_factor
+    from perception.pipeline.modes import ModeLogic
+    from perception.pipeline.observability import ScanPlanner, predict_information
     from perception.pipeline import approach_pose
-    from perception.registration import prepare_model
-    from perception.sensors.tridar import TriDARSensor
+    from perception.estimation.registration import prepare_model
+    from perception.sensing.sensors.tridar import TriDARSensor
 
     pc = cfg.pipeline
     sensor = TriDARSensor(cfg.sensor)
@@ -380,7 +380,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from agents.benchmarks.timing import format_table
     from perception.config import load_config
-    from perception.pah import PAHDatabase
+    from perception.estimation.pah import PAHDatabase
 
     if args.runs < 1:
         raise ValueError(f"--runs={args.runs}; expected >= 1")
@@ -490,7 +490,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _pl_factor(cfg: Any) -> float:
-    from perception.integrity import integrity_factor
+    from perception.pipeline.integrity import integrity_factor
 
     return integrity_factor(cfg.pipeline.integrity.risk)
 

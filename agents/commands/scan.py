@@ -83,10 +83,10 @@ def run(args: argparse.Namespace) -> int:
     import trimesh
 
     from perception.config import load_config
-    from perception.pointcloud import Subsystem
-    from perception.scan_patterns import angles_to_directions, directions_to_angles
-    from perception.sensors import FlashLidar, RelativeMotion, TriDARSensor
-    from perception.sensors.raycast import cast_rays
+    from perception.sensing.pointcloud import Subsystem
+    from perception.sensing.scan_patterns import angles_to_directions, directions_to_angles
+    from perception.sensing.sensors import FlashLidar, RelativeMotion, TriDARSensor
+    from perception.sensing.sensors.raycast import cast_rays
     from perception.targets import load_target
 
     cfg = load_config(args.config)

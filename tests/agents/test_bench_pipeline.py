@@ -45,8 +45,8 @@ def test_recoveries_count_same_instant_reacquisitions() -> None:
     import types
 
     from agents.benchmarks.pipeline import _recoveries
-    from perception.modes import ModeEvent
-    from perception.state import Mode
+    from perception.pipeline.modes import ModeEvent
+    from perception.pipeline.state import Mode
 
     T, S, B = Mode.TRACKING, Mode.SEARCH, Mode.BEARING
     ev = [ModeEvent(0.0, B, S, ""), ModeEvent(1.0, S, T, ""),

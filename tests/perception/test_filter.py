@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from perception.filter import EgoMotion, PoseFilter, RangeFilter
+from perception.pipeline.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import make_T, pose_error
 
 

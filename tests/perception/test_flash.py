@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import FlashLidarConfig
 from perception.geometry import invert, make_T, transform_points
-from perception.pointcloud import Subsystem
-from perception.sensors import FlashLidar, make_sensor
+from perception.sensing.pointcloud import Subsystem
+from perception.sensing.sensors import FlashLidar, make_sensor
 from perception.targets import load_target
 
 

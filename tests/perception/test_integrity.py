@@ -10,16 +10,16 @@ from scipy.stats import chi2
 
 from perception.config import ScanPlanConfig, load_config
 from perception.geometry import make_T
-from perception.integrity import (
+from perception.pipeline.integrity import (
     alert_limit,
     integrity_factor,
     port_covariance,
     protection_level,
     turn_about,
 )
-from perception.observability import ScanPlanner, predict_information
+from perception.pipeline.observability import ScanPlanner, predict_information
 from perception.pipeline import TriDAR, approach_pose
-from perception.registration import FAILURE_VARIANCE, covariance_from_information, icp
+from perception.estimation.registration import FAILURE_VARIANCE, covariance_from_information, icp
 from perception.shapes import generate_target
 from perception.targets import TargetModel, load_target
 
@@ -176,7 +176,7 @@ def test_planner_moves_off_a_degenerate_default_when_a_candidate_observes_more()
 
 
 def _track_still(target: TargetModel, range_m: float, n: int = 60, **overrides: object):  # type: ignore[no-untyped-def]
-    from perception.state import TruthScene
+    from perception.pipeline.state import TruthScene
 
     cfg = load_config("final_approach", pipeline__use_corridor=False, **overrides)
     tri = TriDAR(cfg, target)

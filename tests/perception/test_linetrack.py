@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import FlashLidarConfig
 from perception.geometry import make_T, pose_error
-from perception.linetrack import (
+from perception.estimation.linetrack import (
     SEED_FROM_OURS,
     LineRollTracker,
     Lines,
@@ -26,9 +26,9 @@ from perception.linetrack import (
     seed003_icp_config,
     seed_pose_from_T,
 )
-from perception.sensors import FlashLidar
+from perception.sensing.sensors import FlashLidar
 from perception.targets import load_target
-from perception.voxel import adaptive_voxel_size, voxel_downsample
+from perception.estimation.voxel import adaptive_voxel_size, voxel_downsample
 
 FOV = math.radians(20.0)
 

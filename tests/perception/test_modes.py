@@ -7,10 +7,10 @@ import pytest
 
 from perception.config import ICPConfig, PipelineConfig, load_config
 from perception.geometry import make_T
-from perception.modes import FrameVerdict, ModeLogic
+from perception.pipeline.modes import FrameVerdict, ModeLogic
 from perception.pipeline import TriDAR, approach_pose
-from perception.pointcloud import Subsystem
-from perception.state import Mode
+from perception.sensing.pointcloud import Subsystem
+from perception.pipeline.state import Mode
 from perception.targets import load_target
 
 

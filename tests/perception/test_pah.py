@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import CorridorConfig, ICPConfig, PAHConfig, SensorConfig
 from perception.geometry import make_T, pose_error, transform_points
-from perception.pah import (
+from perception.estimation.pah import (
     PAH_FORMAT_VERSION,
     PAHDatabase,
     PoseConstraint,
@@ -22,8 +22,8 @@ from perception.pah import (
     _Scan,
     _supported,
 )
-from perception.registration import icp, prepare_model
-from perception.sensors import TriDARSensor
+from perception.estimation.registration import icp, prepare_model
+from perception.sensing.sensors import TriDARSensor
 from perception.targets import TargetModel, load_target
 
 SENSOR = TriDARSensor(SensorConfig())
@@ -567,7 +567,7 @@ def test_three_scans_in_a_corridor_search_one_scans_worth_and_verify_on_all(
     # it (the final ICP sees the whole pool). Benchmark cases (scans and corridors as `bench
     # registration`): cubesat 128, 195 and cygnss 46, 92 miss with one scan in the corridor;
     # pooled, they and the others land within 5 cm and 2 deg.
-    import perception.pah as pah_module
+    import perception.estimation.pah as pah_module
 
     db = PAHDatabase.build(load_target(name))
     sizes: list[tuple[int, bool]] = []
@@ -608,7 +608,7 @@ def test_screening_polishes_one_start_per_basin(
 ) -> None:
     # Starts in the basin of one already polished (near it or near its result) slide to the same
     # pose: one short ICP each for the truth's basin and for its quarter turn, not four.
-    import perception.pah as pah_module
+    import perception.estimation.pah as pah_module
 
     db = cubesat_db
     T, cloud = bench_case(db.target, 0)
@@ -694,7 +694,7 @@ def test_polishing_the_leader_out_of_the_corridor_leaves_no_leader(monkeypatch, 
     ``None.free_space_beam`` and stop the episode: glideslope campaign run 29). The path is
     forced: screened hypotheses are left unsettled and never explain the scan, so the leader is
     polished, and from then on the corridor admits nothing."""
-    import perception.pah as pah_module
+    import perception.estimation.pah as pah_module
 
     rng = np.random.default_rng(29)
     T = random_pose(rng)

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from perception.config import PAHConfig
-from perception.pah import PAHDatabase, PAHFileError
+from perception.estimation.pah import PAHDatabase, PAHFileError
 from perception.targets import load_target
 
 ARRAYS = ("points", "normals", "seg_i", "seg_j", "seg_len", "bin_ptr", "dist")

@@ -10,16 +10,16 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-import perception.pah as pah_module
+import perception.estimation.pah as pah_module
 from perception.config import load_config
-from perception.filter import PoseFilter
+from perception.pipeline.filter import PoseFilter
 from perception.geometry import make_T, pose_error
 from perception.pipeline import TriDAR, approach_pose, deskew
-from perception.pointcloud import PointCloud
-from perception.registration import icp, prepare_model
-from perception.scan_patterns import make_pattern
-from perception.sensors import RelativeMotion, TriDARSensor
-from perception.state import Mode, StateVector, TruthScene
+from perception.sensing.pointcloud import PointCloud
+from perception.estimation.registration import icp, prepare_model
+from perception.sensing.scan_patterns import make_pattern
+from perception.sensing.sensors import RelativeMotion, TriDARSensor
+from perception.pipeline.state import Mode, StateVector, TruthScene
 from perception.targets import load_target
 
 
@@ -308,7 +308,7 @@ def test_established_track_starts_icp_in_its_fine_phase_unless_configured(monkey
                                                                            fine_only: bool) -> None:
     """``pipeline.fine_only_tracking``: after three accepted updates ICP runs without its coarse
     phase (the first frames of a track keep it); off, every frame keeps it."""
-    import perception.pipeline as pipeline_module
+    import perception.pipeline.tridar as pipeline_module
 
     calls = []
     orig = pipeline_module.icp
@@ -371,7 +371,7 @@ def test_the_filter_restarts_only_on_rejected_registrations_that_agree(monkeypat
     published valid pose is wrong beyond its protection level."""
     import dataclasses as dc
 
-    import perception.pipeline as pipeline_module
+    import perception.pipeline.tridar as pipeline_module
 
     orig = pipeline_module.icp
     calls = {"n": 0}

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import SensorConfig
 from perception.geometry import make_T
-from perception.scan_patterns import (
+from perception.sensing.scan_patterns import (
     PATTERNS,
     ScanPattern,
     angles_to_directions,

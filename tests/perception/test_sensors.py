@@ -18,10 +18,10 @@ from perception.config import (
     TriangulationConfig,
 )
 from perception.geometry import make_T
-from perception.pointcloud import PointCloud, Subsystem
-from perception.scan_patterns import ScanPattern, make_pattern, rosette, steer_to_region
-from perception.sensors import RelativeMotion, TriDARSensor, make_sensor
-from perception.sensors.raycast import sphere_hits
+from perception.sensing.pointcloud import PointCloud, Subsystem
+from perception.sensing.scan_patterns import ScanPattern, make_pattern, rosette, steer_to_region
+from perception.sensing.sensors import RelativeMotion, TriDARSensor, make_sensor
+from perception.sensing.sensors.raycast import sphere_hits
 from perception.targets import TargetModel, load_target
 
 

@@ -10,10 +10,10 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import FlashLidarConfig, ICPConfig
 from perception.geometry import pose_error
-from perception.linetrack import T_from_seed_pose
-from perception.registration import icp, prepare_model
-from perception.sensors import FlashLidar
-from perception.silhouette import (
+from perception.estimation.linetrack import T_from_seed_pose
+from perception.estimation.registration import icp, prepare_model
+from perception.sensing.sensors import FlashLidar
+from perception.estimation.silhouette import (
     FlashGeometry,
     _edge_quantisation_variance,
     outline_pairs,

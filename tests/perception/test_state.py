@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.state import Mode, StateVector, Validity
+from perception.pipeline.state import Mode, StateVector, Validity
 
 FIELDS = {
     "t": np.inf, "range": np.nan, "range_rate": -np.inf, "fitness": np.nan, "latency": np.inf,

@@ -9,7 +9,7 @@ import numpy as np
 from perception.config import load_config
 from perception.geometry import pose_error
 from perception.pipeline import TriDAR, approach_pose
-from perception.registration import icp
+from perception.estimation.registration import icp
 from perception.targets import load_target
 
 

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from perception.shapes import generate_target, save_generated
-from perception.sensors.raycast import cast_rays
+from perception.sensing.sensors.raycast import cast_rays
 from perception.targets import ENVELOPES_M, LIBRARY, find_symmetries, has_embree, load_target
 
 

@@ -402,7 +402,7 @@ def test_reset_builds_the_search_database_so_the_first_step_does_not(
 ) -> None:
     """With the full pipeline, reset() builds what search needs (PAH database, near-symmetries):
     the first step of an episode searches without building anything (it used to stall ~1 s)."""
-    import perception.pah as pah
+    import perception.estimation.pah as pah
 
     env = gym.make("TriDAR/FinalApproach-v0")
     env.unwrapped.target.cache.clear()  # as in a fresh process

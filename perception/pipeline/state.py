@@ -11,7 +11,7 @@ Quantities are relative and kinematic, as the sensor observes them:
   ``(az, el)`` [rad] of the line of sight (az toward +x, el toward -y, i.e. up).
 
 Every pose carries a ``protection_level`` [m], a bound on the docking port's position error at the
-mission's integrity risk (:mod:`perception.integrity`), and the ``alert_limit`` [m] it is held to.
+mission's integrity risk (:mod:`perception.pipeline.integrity`), and the ``alert_limit`` [m] it is held to.
 A pose whose protection level exceeds its alert limit is published with ``valid.degraded`` set:
 its numbers are the best estimate there is, but it is not valid for closing in (``valid.pose`` is
 False). Without a pose both are 0.
@@ -169,7 +169,7 @@ class TruthScene:
         T_sensor_target: (4, 4) pose at the frame start time ``t``.
         t: frame start time [s].
         motion: relative motion over the frame (motion during the scan): a
-            ``perception.sensors.RelativeMotion`` or a callable ``t -> (4, 4) T_sensor_target``.
+            ``perception.sensing.sensors.RelativeMotion`` or a callable ``t -> (4, 4) T_sensor_target``.
     """
 
     T_sensor_target: FloatArray

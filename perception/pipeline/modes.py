@@ -31,8 +31,8 @@ import numpy.typing as npt
 
 from perception.config import ICPConfig, PipelineConfig
 from perception.geometry import pose_error
-from perception.pointcloud import Subsystem
-from perception.state import Mode
+from perception.sensing.pointcloud import Subsystem
+from perception.pipeline.state import Mode
 
 __all__ = ["ModeEvent", "FrameVerdict", "ModeLogic"]
 
@@ -104,7 +104,7 @@ class ModeLogic:
         """Tracker settings for the subsystem that produced most of a scan's points.
 
         Args:
-            subsystem: the scan's per-point :class:`~perception.pointcloud.Subsystem` codes
+            subsystem: the scan's per-point :class:`~perception.sensing.pointcloud.Subsystem` codes
                 (``PointCloud.subsystem``).
         """
         s = np.asarray(subsystem)

@@ -5,7 +5,7 @@ Each pixel's ray is intersected with the target mesh (step 2 of seed 003), and a
 (the seed's maximum absolute error, covering bias and noise) or Gaussian with sigma
 ``range_error_m``. All pixels share one time, so a moving target is not distorted.
 
-Pixel geometry uses the angle convention of :mod:`perception.scan_patterns`: pixel ``(r, c)``
+Pixel geometry uses the angle convention of :mod:`perception.sensing.scan_patterns`: pixel ``(r, c)``
 looks at ``az = ((c + 0.5) / cols - 0.5) * fov_h`` (toward +x) and, downward (+y),
 ``((r + 0.5) / rows - 0.5) * fov_v`` — equal angular steps per pixel, as in seed 003 eq. (4).
 Row 0 is the top of the image. Pixels beyond ``grazing_limit_deg`` of incidence or outside
@@ -22,9 +22,9 @@ import numpy.typing as npt
 
 from perception.config import FlashLidarConfig
 from perception.geometry import check_rigid
-from perception.pointcloud import PointCloud, Subsystem
-from perception.scan_patterns import angles_to_directions
-from perception.sensors.raycast import cast_from_sensor
+from perception.sensing.pointcloud import PointCloud, Subsystem
+from perception.sensing.scan_patterns import angles_to_directions
+from perception.sensing.sensors.raycast import cast_from_sensor
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]

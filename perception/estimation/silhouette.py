@@ -3,7 +3,7 @@
 Why: seen face-on, a target made of flat plates (the CYGNSS-like bus and wings of seed 003) gives
 point-to-plane ICP no information about its in-plane position and its roll about the boresight:
 every point's residual is along the plate normal. The Cramer-Rao bound of
-:func:`perception.registration.icp` flags ``tx, ty, rz`` as degenerate on most seed-003 frames,
+:func:`perception.estimation.registration.icp` flags ``tx, ty, rz`` as degenerate on most seed-003 frames,
 and the tracker's in-plane error is whatever the prediction left (a few mm, spikes of 5-8 mm and
 0.24 deg). What does fix them is the outline: a flash frame says, pixel by pixel, where the target
 is *not*.
@@ -22,7 +22,7 @@ point-to-plane residual (normal ``n``, point ``s`` on the edge), so surface and 
 one Gauss-Newton step on the pose.
 
 :func:`refine_pose` runs that joint step from an ICP result: surface rows from the faces the
-measured rays cross (:meth:`perception.registration.FaceGrid.nearest`), outline rows from the
+measured rays cross (:meth:`perception.estimation.registration.FaceGrid.nearest`), outline rows from the
 pairs, re-matched each iteration; its covariance is the inverse of the joint information.
 """
 
@@ -37,14 +37,14 @@ import numpy.typing as npt
 
 from perception.config import FlashLidarConfig
 from perception.geometry import check_rigid
-from perception.pointcloud import PointCloud
-from perception.registration import (
+from perception.sensing.pointcloud import PointCloud
+from perception.estimation.registration import (
     ModelCloud,
     RegistrationResult,
     covariance_from_information,
 )
-from perception.scan_patterns import angles_to_directions
-from perception.sensors.raycast import cast_rays
+from perception.sensing.scan_patterns import angles_to_directions
+from perception.sensing.sensors.raycast import cast_rays
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -91,7 +91,7 @@ class FlashGeometry:
 
     @classmethod
     def from_config(cls, config: FlashLidarConfig | None = None) -> FlashGeometry:
-        """The geometry of :class:`perception.sensors.FlashLidar` for ``config`` (same pixel
+        """The geometry of :class:`perception.sensing.sensors.FlashLidar` for ``config`` (same pixel
         angles: equal angular steps, pixel centres)."""
         c = config or FlashLidarConfig()
         fov_h, fov_v = (math.radians(v) for v in c.fov_deg)

@@ -6,7 +6,7 @@ patch: three of six axes unobserved, and an estimate that slides along the face.
 :class:`ScanPlanner` predicts, for candidate regions, the scan the sensor will make (the same
 steered pattern and the same rays, cast on the model at the predicted pose), forms the
 registration's information ``sum A_i^T A_i / var_i``
-(:func:`perception.registration.information_rows`, the ``J^T J / sigma^2`` behind the Cramer-Rao
+(:func:`perception.estimation.registration.information_rows`, the ``J^T J / sigma^2`` behind the Cramer-Rao
 bound), and scores each region by the bound it gives
 at the docking port: ``sqrt(lambda_max)`` of the port-position covariance plus the attitude bound
 times ``attitude_lever_m``. Directions carried by grazing matches that another face explains as
@@ -15,7 +15,7 @@ region must be observable in a way that survives a few centimetres of prediction
 
 With ``outline`` the prediction also counts what the pipeline's outline refinement adds where
 ICP leaves axes unobserved: consecutive samples of the predicted scan across the target's outline
-(:func:`perception.silhouette.scan_outline_pairs`), so a region that shows a flat face's edges
+(:func:`perception.estimation.silhouette.scan_outline_pairs`), so a region that shows a flat face's edges
 scores better than one inside the face.
 
 Candidates: the target's own regions (``whole``, ``docking_area``, ``port`` and any others), boxes
@@ -37,17 +37,17 @@ import numpy.typing as npt
 
 from perception.config import ScanPlanConfig
 from perception.geometry import skew
-from perception.integrity import port_covariance
-from perception.pointcloud import Subsystem
-from perception.registration import (
+from perception.pipeline.integrity import port_covariance
+from perception.sensing.pointcloud import Subsystem
+from perception.estimation.registration import (
     FAILURE_VARIANCE,
     ModelCloud,
     covariance_from_information,
     edge_ambiguous,
     information_rows,
 )
-from perception.scan_patterns import angles_to_directions
-from perception.sensors.raycast import cast_rays, face_planes
+from perception.sensing.scan_patterns import angles_to_directions
+from perception.sensing.sensors.raycast import cast_rays, face_planes
 from perception.targets import RegionOfInterest, TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -63,12 +63,12 @@ class Prediction:
         region: the region predicted.
         information: (6, 6) information of the predicted scan (twist about the target origin,
             sensor axes; the layout of
-            :attr:`~perception.registration.RegistrationResult.covariance`), scaled to the
+            :attr:`~perception.estimation.registration.RegistrationResult.covariance`), scaled to the
             frame's sample count.
         covariance: (6, 6) its covariance, unobserved directions at ``FAILURE_VARIANCE``.
         port_bound_m: ``sqrt(lambda_max)`` of the port position covariance [m].
         attitude_bound_rad: ``sqrt(lambda_max)`` of the attitude covariance [rad].
-        degenerate_axes: unobserved axes (names of :data:`~perception.registration.AXIS_NAMES`).
+        degenerate_axes: unobserved axes (names of :data:`~perception.estimation.registration.AXIS_NAMES`).
         n_hits: predicted returns (of the predicted rays).
         score: ``port_bound_m + attitude_lever_m * attitude_bound_rad`` [m].
     """
@@ -102,8 +102,8 @@ def predict_information(
 
     Args:
         target: the target model.
-        sensor: a :class:`~perception.sensors.tridar.TriDARSensor` (pattern, noise model).
-        model: the prepared model cloud (:func:`~perception.registration.prepare_model`).
+        sensor: a :class:`~perception.sensing.sensors.tridar.TriDARSensor` (pattern, noise model).
+        model: the prepared model cloud (:func:`~perception.estimation.registration.prepare_model`).
         T_sensor_target: (4, 4) predicted pose.
         region: region of interest to steer onto.
         frame_index: frame index (pattern phase).
@@ -193,7 +193,7 @@ def _outline_information_rows(
     """Rows of the outline information of a predicted scan (what the pipeline's outline
     refinement adds): pairs of consecutive samples across the outline, their silhouette-plane
     normals and quantisation variances, on the in-plane axes (tx, ty, rz) about ``c``."""
-    from perception.silhouette import FlashGeometry, outline_rows, scan_outline_pairs
+    from perception.estimation.silhouette import FlashGeometry, outline_rows, scan_outline_pairs
 
     a, b = scan_outline_pairs(d_all, hit)
     if a.size == 0:

@@ -10,7 +10,7 @@ Per sample (all samples of a frame at once, one Embree call for every sub-ray):
    Gaussian per axis); the sensor reports the commanded angle quantised to
    ``pointing.resolution_rad``. Points lie along the *reported* direction.
 2. **Motion.** Sample ``i`` is taken at ``t0 + pattern.times[i]`` and sees the target at its pose
-   at that instant (:mod:`perception.sensors.motion`).
+   at that instant (:mod:`perception.sensing.sensors.motion`).
 3. **Beam divergence.** The footprint (full angle ``beam.divergence_rad``) is sampled by a centre
    ray and ``beam.subrays - 1`` rays on its rim. Each sub-ray returns
    ``reflectivity * cos(incidence)`` of the face it hits: nothing beyond
@@ -29,7 +29,7 @@ Per sample (all samples of a frame at once, one Embree call for every sub-ray):
 6. **Fusion.** Below ``transition_range_m`` triangulation is the primary; TOF fills its holes and
    replaces its outliers (triangulation and TOF disagreeing by more than 5 sigma, as on edges).
    At and above the transition only TOF is used. Each point records its subsystem.
-7. **Faults** (:mod:`perception.sensors.faults`): occluder, spurious returns, dropouts, blackout.
+7. **Faults** (:mod:`perception.sensing.sensors.faults`): occluder, spurious returns, dropouts, blackout.
 
 Intensity is the signal ``reflectivity * cos(incidence)`` of the footprint (range independent).
 """
@@ -43,16 +43,16 @@ import numpy.typing as npt
 
 from perception.config import SensorConfig
 from perception.geometry import check_rigid
-from perception.pointcloud import PointCloud, Subsystem
-from perception.scan_patterns import (
+from perception.sensing.pointcloud import PointCloud, Subsystem
+from perception.sensing.scan_patterns import (
     ScanPattern,
     angles_to_directions,
     make_pattern,
     steer_to_region,
 )
-from perception.sensors.faults import OCCLUDER_REFLECTIVITY, FaultInjector
-from perception.sensors.motion import Motion, sample_poses
-from perception.sensors.raycast import cast_from_sensor, cast_rays, sphere_hits
+from perception.sensing.sensors.faults import OCCLUDER_REFLECTIVITY, FaultInjector
+from perception.sensing.sensors.motion import Motion, sample_poses
+from perception.sensing.sensors.raycast import cast_from_sensor, cast_rays, sphere_hits
 from perception.targets import RegionOfInterest, TargetModel
 
 FloatArray = npt.NDArray[np.float64]

@@ -52,7 +52,7 @@ def port_covariance(
 
     Args:
         cov12: (12, 12) covariance over ``[position, velocity, attitude, angular velocity]`` (the
-            :class:`~perception.state.StateVector` layout; attitude a left perturbation about the
+            :class:`~perception.pipeline.state.StateVector` layout; attitude a left perturbation about the
             sensor axes).
         R_sensor_target: (3, 3) estimated attitude.
         r_port_target: (3,) port position in the target frame [m].

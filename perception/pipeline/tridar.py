@@ -1,4 +1,4 @@
-"""The TriDAR: sensor + modes + estimators + filter -> :class:`~perception.state.StateVector`.
+"""The TriDAR: sensor + modes + estimators + filter -> :class:`~perception.pipeline.state.StateVector`.
 
 Following the MILD approach (seed 000 section 4.3) the algorithms drive the scanner: each frame the
 mode logic decides what to scan (full field, the bearing box, or a region of interest around the
@@ -26,7 +26,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from perception.config import ICPConfig, MissionConfig
-from perception.filter import EgoMotion, PoseFilter, RangeFilter
+from perception.pipeline.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.geometry import (
     check_rigid,
     cross_rows,
@@ -35,21 +35,21 @@ from perception.geometry import (
     pose_error,
     skew,
 )
-from perception.integrity import (
+from perception.pipeline.integrity import (
     alert_limit,
     integrity_factor,
     port_covariance,
     protection_level,
     turn_about,
 )
-from perception.modes import FrameVerdict, ModeLogic
+from perception.pipeline.modes import FrameVerdict, ModeLogic
 from perception.numeric import median
-from perception.observability import ScanPlanner
-from perception.pointcloud import PointCloud
-from perception.registration import RegistrationResult, icp, prepare_model
-from perception.scan_patterns import angles_to_directions, make_pattern, steer_to_region
-from perception.sensors.tridar import TriDARSensor
-from perception.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
+from perception.pipeline.observability import ScanPlanner
+from perception.sensing.pointcloud import PointCloud
+from perception.estimation.registration import RegistrationResult, icp, prepare_model
+from perception.sensing.scan_patterns import angles_to_directions, make_pattern, steer_to_region
+from perception.sensing.sensors.tridar import TriDARSensor
+from perception.pipeline.state import INVALID_VARIANCE, Mode, StateVector, TruthScene, Validity
 from perception.targets import RegionOfInterest, TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -249,7 +249,7 @@ class TriDAR:
     def pah(self) -> Any:
         """The PAH database of the target (built once per target and configuration)."""
         if self._pah is None:
-            from perception.pah import PAHDatabase
+            from perception.estimation.pah import PAHDatabase
 
             key = ("pah_db", self.pc.pah.model_dump_json())
             mt = self.model_target
@@ -397,7 +397,7 @@ class TriDAR:
     def _constraint(self) -> Any:
         if not self.pc.use_corridor:
             return None
-        from perception.pah import PoseConstraint
+        from perception.estimation.pah import PoseConstraint
 
         return PoseConstraint.from_corridor(self.pc.corridor, self.R_nominal)
 
@@ -611,7 +611,7 @@ class TriDAR:
 
         The samples of the frame's pattern that gave no return bound the target as much as the
         returns locate its surface: where the scan's curve crosses the outline, the model's
-        outline must cross the same short arc (:func:`perception.silhouette.scan_outline_pairs`,
+        outline must cross the same short arc (:func:`perception.estimation.silhouette.scan_outline_pairs`,
         the scanning form of seed 003's depth-map outline). A flat face seen head-on, which
         point-to-plane ICP cannot place in its plane, is placed by its edges. The refinement is
         kept when it converges, observes more axes than ICP did and stays within a frame's jump of
@@ -619,7 +619,7 @@ class TriDAR:
         """
         if not (res.degenerate_axes and self.pc.outline_refinement and self._frame_pattern is not None):
             return res
-        from perception.silhouette import FlashGeometry, refine_with_outline, scan_outline_pairs
+        from perception.estimation.silhouette import FlashGeometry, refine_with_outline, scan_outline_pairs
 
         pattern, t0 = self._frame_pattern
         dirs = angles_to_directions(pattern.az, pattern.el)
@@ -653,7 +653,7 @@ class TriDAR:
 
         ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model (PAH's near-symmetry
         search) and the converged alternatives are scored as PAH ranks hypotheses
-        (:meth:`~perception.pah.PAHDatabase.verify_poses`). Two uses, on their own schedules:
+        (:meth:`~perception.estimation.pah.PAHDatabase.verify_poses`). Two uses, on their own schedules:
 
         - integrity (``integrity.ambiguity_check_period_s``, and on every new track's first
           ``confirm_frames`` frames): while a twin scores within ``ambiguity_margin`` of the

@@ -6,10 +6,10 @@
 from __future__ import annotations
 
 from perception.config import FlashLidarConfig, SensorConfig
-from perception.sensors.faults import FaultInjector
-from perception.sensors.flash import FlashLidar
-from perception.sensors.motion import RelativeMotion, sample_poses
-from perception.sensors.tridar import TriDARSensor
+from perception.sensing.sensors.faults import FaultInjector
+from perception.sensing.sensors.flash import FlashLidar
+from perception.sensing.sensors.motion import RelativeMotion, sample_poses
+from perception.sensing.sensors.tridar import TriDARSensor
 
 __all__ = [
     "FaultInjector",

@@ -30,7 +30,7 @@ tracked as noise.
 Attitude errors are left perturbations in the sensor frame, ``R_true = exp(dtheta^) R_est``; the
 error state is ``[dp, dv, dtheta, domega]`` (12). The measurement is the 6-vector
 ``[p_meas - p, log(R_meas R^T)]``, whose noise is the registration covariance as
-:class:`~perception.registration.RegistrationResult` reports it (position of the target origin,
+:class:`~perception.estimation.registration.RegistrationResult` reports it (position of the target origin,
 then attitude about the sensor axes).
 
 :class:`RangeFilter` is the bearing-mode filter: a two-state (range, range rate) Kalman filter over

@@ -496,6 +496,11 @@ class PipelineConfig(StrictModel):
     process_noise_angacc: Annotated[Float, Field(gt=0, le=MAX_ACCEL_M_S2)] = Field(
         0.005, description="[rad/s^2/sqrt(Hz)]"
     )
+    initial_rate_sigma_deg_s: Annotated[Float, Field(gt=0, le=MAX_RATE_DEG_S)] = Field(
+        6.0, description="1-sigma prior on the target's angular rate when a track starts [deg/s] "
+        "(a target held in LVLH turns at orbit rate: a tight prior keeps a track's first, "
+        "loosely constrained frames from being read as a spin)"
+    )
     symmetry_check_period_s: Period | None = Field(
         None,
         description="ambiguity monitor: every this many seconds of tracking, ICP from each "

@@ -206,6 +206,7 @@ class TriDAR:
         self.external_seed = None
         inertia = self.target.inertia if self.pc.target_rotation == "torque_free" else None
         self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2,
+                                 init_rate_sigma=math.radians(self.pc.initial_rate_sigma_deg_s),
                                  ref_point=self.target.T_target_port[:3, 3], inertia=inertia)
         self._ego: EgoMotion | None = None
         self.range_filter = RangeFilter(self.pc.process_noise_accel**2)

@@ -1,5 +1,7 @@
 """Truth dynamics: chaser relative orbital motion and target attitude.
 
+Long module: moved whole from ``tridar_env/dynamics.py``; the next commit splits it by job.
+
 Frames (see DESIGN.md):
 
 * ECI: Earth-centred inertial, z along the Earth's pole (the J2 axis).

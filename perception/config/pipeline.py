@@ -1,0 +1,189 @@
+"""Configuration of the TriDAR pipeline: modes and strategies by range, the approach corridor,
+integrity (what a published pose promises) and the observability-aware scan plan."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, StrictBool
+
+from perception.config.estimation import ICPConfig, PAHConfig
+from perception.config.types import (
+    MAX_ACCEL_M_S2,
+    MAX_COUNT,
+    MAX_FACTOR,
+    MAX_RATE_DEG_S,
+    Float,
+    Int,
+    Latency,
+    NonNegFloat,
+    NonNegPeriod,
+    NonNegRange,
+    Period,
+    PositiveFloat,
+    Range,
+    Sigma,
+    Size,
+    StrictModel,
+    UnitFloat,
+)
+
+
+class CorridorConfig(StrictModel):
+    """Approach corridor: a cone about the port axis plus attitude and range bounds."""
+
+    half_angle_deg: Annotated[Float, Field(gt=0, le=180)] = 15.0
+    attitude_tolerance_deg: Annotated[Float, Field(gt=0, le=180)] = 20.0
+    min_range_m: NonNegRange = 0.0
+    max_range_m: Range = 1000.0
+
+
+class IntegrityConfig(StrictModel):
+    """What a published pose promises (:mod:`perception.pipeline.integrity`)."""
+
+    risk: Annotated[Float, Field(gt=0, lt=0.5)] = Field(
+        1e-5, description="probability that the port position error exceeds the protection level"
+    )
+    alert_limit_m: Size = Field(
+        0.08, description="tolerable port position error [m] inside alert_limit_range_m; a pose "
+        "whose protection level exceeds the alert limit is published degraded"
+    )
+    alert_limit_range_m: Range = Field(
+        5.0, description="beyond this range [m] the alert limit grows in proportion to the range"
+    )
+    bias_m: Sigma = Field(
+        0.005, description="1-sigma of the registrations' time-correlated position error at the "
+        "port [m] (model error, ICP bias over a stretch of similar views): a filter that averages "
+        "frames cannot average it away, so it is added to the published position covariance"
+    )
+    bias_rad: Annotated[Float, Field(ge=0, le=1)] = Field(
+        0.001, description="the same correlated error growing with range [rad]: 1-sigma "
+        "max(bias_m, bias_rad * range) (beam footprint, TOF noise over a far target; a generated "
+        "boxes-and-booms target was 4-12 cm off at 15-30 m under a 3 cm protection level)"
+    )
+    confirm_frames: Annotated[Int, Field(ge=1, le=10_000)] = Field(
+        3, description="accepted frames before a new track's pose may be published valid"
+    )
+    ambiguity_check_period_s: Period | None = Field(
+        1.0, description="twin monitor: every this many seconds of tracking (and on each new "
+        "track's first frames), ICP from each near-symmetric turn of the tracked pose; while one "
+        "explains the scan about as well (within ambiguity_margin), the protection level grows "
+        "by the port's offset between the two poses (None: off)"
+    )
+    ambiguity_margin: PositiveFloat = Field(
+        0.05, description="a twin whose PAH score is within this of the tracked pose's, or "
+        "better, makes the pose ambiguous"
+    )
+
+
+class ScanPlanConfig(StrictModel):
+    """Observability-aware choice of the tracking region (:mod:`perception.pipeline.observability`)."""
+
+    mode: Literal["range", "observability"] = Field(
+        "observability", description="range: seed 000's regions by range; observability: the candidate "
+        "region with the smallest predicted bound at the port (range strategy as the default)"
+    )
+    period_s: Period = Field(
+        1.0, description="a plan stands this long [s]; re-planned only while registrations leave "
+        "axes unobserved, or to return to the range strategy's region"
+    )
+    rays: Annotated[Int, Field(ge=20, le=5000)] = Field(300, description="rays per predicted scan")
+    switch_factor: Annotated[Float, Field(ge=1, le=MAX_FACTOR)] = Field(
+        1.5, description="leave the range strategy's region only for a bound this many times smaller"
+    )
+    attitude_lever_m: NonNegFloat = Field(0.5, description="attitude bound weight in the score [m/rad]")
+    edge_ambiguity_sigmas: NonNegFloat = Field(2.5, description="as icp.edge_ambiguity_sigmas")
+    min_support: NonNegFloat = Field(5.0, description="as icp.min_direction_support (frame points)")
+    outline: StrictBool = Field(True, description="count the outline information the pipeline's "
+                          "outline refinement adds (pipeline.outline_refinement)")
+
+
+class PipelineConfig(StrictModel):
+    """The mission configuration database of seed 000 section 3.3/5.3: modes, strategies by range."""
+
+    bearing_to_search_range_m: Range = 200.0
+    search_to_bearing_range_m: Range = 250.0
+    roi_whole_above_m: Range = Field(20.0, description="whole structure beyond this range")
+    roi_port_below_m: Range = Field(5.0, description="docking port only below this range")
+    loss_of_track_frames: Annotated[Int, Field(ge=1, le=MAX_COUNT)] = 3
+    max_inlier_rmse_factor: PositiveFloat = 4.0
+    min_fitness: UnitFloat = 0.5
+    acquire_min_fitness: UnitFloat = Field(
+        0.8, description="a search pose starts a track only if this fraction of the scan fits it"
+    )
+    max_jump_m: Range = 0.5
+    max_jump_deg: Annotated[Float, Field(gt=0, le=360)] = 10.0
+    restart_period_s: Period | None = None
+    restart_inhibit_range_m: NonNegRange = Field(
+        3.0, description="no planned restart while the estimated docking port is closer than this "
+        "[m]: a track dropped on purpose seconds before contact leaves the controller a freshly "
+        "reacquired state at the envelope's edge (0: restarts at any range)"
+    )
+    tracking_latency_s: Latency = 0.09
+    search_latency_s: Latency = 1.0
+    bearing_latency_s: Latency = 0.02
+    frame_rate_hz: Annotated[Float, Field(gt=0, le=1000)] = 5.0
+    use_corridor: StrictBool = True
+    corridor: CorridorConfig = CorridorConfig()
+    icp_triangulation: ICPConfig | None = Field(
+        None, description="tracker settings on triangulation data (default: icp)"
+    )
+    icp: ICPConfig = ICPConfig()
+    pah: PAHConfig = PAHConfig()
+    process_noise_accel: Annotated[Float, Field(gt=0, le=MAX_ACCEL_M_S2)] = Field(
+        0.05, description="white relative acceleration [m/s^2/sqrt(Hz)]: covers chaser thrust"
+    )
+    process_noise_angacc: Annotated[Float, Field(gt=0, le=MAX_ACCEL_M_S2)] = Field(
+        0.005, description="[rad/s^2/sqrt(Hz)]"
+    )
+    initial_rate_sigma_deg_s: Annotated[Float, Field(gt=0, le=MAX_RATE_DEG_S)] = Field(
+        6.0, description="1-sigma prior on the target's angular rate when a track starts [deg/s] "
+        "(a target held in LVLH turns at orbit rate: a tight prior keeps a track's first, "
+        "loosely constrained frames from being read as a spin)"
+    )
+    symmetry_check_period_s: Period | None = Field(
+        None,
+        description="ambiguity monitor: every this many seconds of tracking, ICP from each "
+        "near-symmetric turn of the tracked pose and switch to one that explains the points "
+        "clearly better (None: off)",
+    )
+    symmetry_switch_checks: Annotated[Int, Field(ge=1, le=10_000)] = Field(
+        3, description="checks in a row that must prefer the same turn before switching to it"
+    )
+    symmetry_margin: PositiveFloat = Field(
+        0.01, description="lead in PAH score (likelihood minus twice the unexplained fraction) to switch"
+    )
+    ego_motion: StrictBool = Field(
+        False,
+        description="fuse the host's gyro and accelerometer (perception.pipeline.filter.EgoMotion) into the "
+        "relative-motion filter, so that the chaser's own rotation and thrust are not process noise",
+    )
+    target_rotation: Literal["constant_rate", "torque_free"] = Field(
+        "constant_rate",
+        description="filter model of the target's inertial rate: constant, or Euler's torque-free "
+        "equations with the target model's inertia (a tumbling target)",
+    )
+    measurement_floor_m: Sigma = Field(
+        0.01, description="added to the registration's position sigma (model error, TOF bias)"
+    )
+    measurement_floor_deg: Annotated[Float, Field(ge=0, le=180)] = Field(
+        0.3, description="added attitude sigma [deg]"
+    )
+    reacquire_window_s: NonNegPeriod = Field(
+        3.0, description="after a loss, search first tries ICP from the lost track's prediction"
+    )
+    filter_reinit_frames: Annotated[Int, Field(ge=1, le=10_000)] = Field(
+        2, description="good registrations rejected by the filter gate in a row before re-init"
+    )
+    integrity: IntegrityConfig = IntegrityConfig()
+    outline_refinement: StrictBool = Field(
+        True, description="when ICP leaves axes unobserved, refine the pose with the scan's "
+        "outline (samples that returned next to samples that did not)"
+    )
+    scan_plan: ScanPlanConfig = ScanPlanConfig()
+    fine_only_tracking: StrictBool = Field(
+        True, description="on an established track (rates estimated, the last frames accepted) "
+        "ICP starts from the filter's prediction in its fine phase, without the coarse phase "
+        "(one correspondence search fewer per frame)"
+    )
+

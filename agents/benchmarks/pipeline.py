@@ -221,6 +221,7 @@ def summarise(result: dict) -> tuple[dict, list[dict]]:
             "pos_rms_mm": 1e3 * float(np.sqrt(np.nanmean(rec["pos_err"][m] ** 2))),
             "pos_max_mm": 1e3 * float(np.nanmax(rec["pos_err"][m])),
             "port_rms_mm": 1e3 * float(np.sqrt(np.nanmean(rec["port_err"][m] ** 2))),
+            "port_p95_mm": 1e3 * float(np.nanpercentile(rec["port_err"][m], 95)),
             "port_max_mm": 1e3 * float(np.nanmax(rec["port_err"][m])),
             "att_rms_deg": float(np.sqrt(np.nanmean(rec["att_err"][m] ** 2))),
             "att_max_deg": float(np.nanmax(rec["att_err"][m])),

@@ -9,7 +9,9 @@ import trimesh
 from scipy.stats import chi2
 
 from perception.config import ScanPlanConfig, load_config
+from perception.estimation.registration import FAILURE_VARIANCE, covariance_from_information, icp
 from perception.geometry import make_T
+from perception.pipeline import TriDAR, approach_pose
 from perception.pipeline.integrity import (
     alert_limit,
     integrity_factor,
@@ -18,8 +20,6 @@ from perception.pipeline.integrity import (
     turn_about,
 )
 from perception.pipeline.observability import ScanPlanner, predict_information
-from perception.pipeline import TriDAR, approach_pose
-from perception.estimation.registration import FAILURE_VARIANCE, covariance_from_information, icp
 from perception.shapes import generate_target
 from perception.targets import TargetModel, load_target
 

@@ -12,15 +12,25 @@ from scipy.spatial.transform import Rotation
 
 import perception.estimation.pah as pah_module
 from perception.config import load_config
-from perception.pipeline.filter import PoseFilter
+from perception.estimation.registration import icp, prepare_model
 from perception.geometry import make_T, pose_error
 from perception.pipeline import TriDAR, approach_pose, deskew
+from perception.pipeline.filter import PoseFilter
+from perception.pipeline.state import Mode, StateVector, TruthScene
 from perception.sensing.pointcloud import PointCloud
-from perception.estimation.registration import icp, prepare_model
 from perception.sensing.scan_patterns import make_pattern
 from perception.sensing.sensors import RelativeMotion, TriDARSensor
-from perception.pipeline.state import Mode, StateVector, TruthScene
 from perception.targets import load_target
+
+
+def _patch_icp(monkeypatch: pytest.MonkeyPatch, fn) -> None:
+    """Replace ICP wherever the pipeline's handlers look it up (search, tracking, twin monitor)."""
+    import perception.pipeline.search as search_module
+    import perception.pipeline.tracking as tracking_module
+    import perception.pipeline.twins as twins_module
+
+    for module in (search_module, tracking_module, twins_module):
+        monkeypatch.setattr(module, "icp", fn)
 
 
 class Fly:
@@ -57,7 +67,7 @@ def test_bearing_mode_outputs_only_bearing_range_and_rate() -> None:
     fly = Fly(approach_pose(cfg, target, 420.0), v=(0.0, 0.0, -0.3))
     hist = _run(tri, fly, 25, dt=0.5)
     assert all(sv.mode == Mode.BEARING for _, sv in hist)
-    t, sv = hist[-1]
+    _, sv = hist[-1]
     assert sv.valid.bearing and sv.valid.range and sv.valid.range_rate
     assert not (sv.valid.position or sv.valid.attitude or sv.valid.velocity or sv.valid.angular_velocity)
     np.testing.assert_array_equal(sv.position, 0.0)  # invalid fields hold zeros, not stale numbers
@@ -89,7 +99,7 @@ def test_external_seed_acquires_and_tracks_to_centimetres() -> None:
     errs = [pose_error(sv.T_sensor_target, fly.T(t)) for t, sv in hist[-15:] if sv.valid.position]
     assert len(errs) == 15
     assert max(e[0] for e in errs) < 0.02 and max(e[1] for e in errs) < 0.3
-    t, sv = hist[-1]
+    _, sv = hist[-1]
     assert sv.valid.velocity and np.linalg.norm(sv.velocity - fly.v) < 0.02
     assert sv.latency > 0  # published from an earlier scan, propagated to now
 
@@ -308,16 +318,14 @@ def test_established_track_starts_icp_in_its_fine_phase_unless_configured(monkey
                                                                            fine_only: bool) -> None:
     """``pipeline.fine_only_tracking``: after three accepted updates ICP runs without its coarse
     phase (the first frames of a track keep it); off, every frame keeps it."""
-    import perception.pipeline.tridar as pipeline_module
-
     calls = []
-    orig = pipeline_module.icp
+    orig = icp
 
     def spy(*a, **k):
         calls.append(k.get("coarse", True))
         return orig(*a, **k)
 
-    monkeypatch.setattr(pipeline_module, "icp", spy)
+    _patch_icp(monkeypatch, spy)
     cfg = load_config("final_approach", pipeline__use_corridor=False,
                       pipeline__fine_only_tracking=fine_only)
     target = load_target(cfg.target.name)
@@ -371,9 +379,7 @@ def test_the_filter_restarts_only_on_rejected_registrations_that_agree(monkeypat
     published valid pose is wrong beyond its protection level."""
     import dataclasses as dc
 
-    import perception.pipeline.tridar as pipeline_module
-
-    orig = pipeline_module.icp
+    orig = icp
     calls = {"n": 0}
     cfg = load_config("final_approach", pipeline__use_corridor=False,
                       pipeline__integrity__ambiguity_check_period_s=None)
@@ -389,7 +395,7 @@ def test_the_filter_restarts_only_on_rejected_registrations_that_agree(monkeypat
         turn = make_T(Rotation.from_euler("z", angle, degrees=True).as_matrix())
         return dc.replace(res, T_sensor_target=turn @ fly.T(0.0))
 
-    monkeypatch.setattr(pipeline_module, "icp", skewed)
+    _patch_icp(monkeypatch, skewed)
     tri = TriDAR(cfg, target)
     tri.reset(np.random.default_rng(3))
     hist = _run(tri, fly, 40, hook=lambda k, t: tri.seed_pose(fly.T(t), t) if k == 0 else None)
@@ -444,6 +450,6 @@ def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monit
     if monitor:
         assert not any(misleading)
         assert all(sv.valid.degraded for sv in tracked)
-        assert tri._ambiguity_m > 0.3
+        assert tri.twins.ambiguity_m > 0.3
     else:
         assert np.mean(misleading) > 0.5

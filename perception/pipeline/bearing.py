@@ -1,0 +1,126 @@
+"""Bearing mode: find the target in the full field, then steer the scan onto it; and the centroid
+bearing and filtered range every mode publishes next to (or instead of) a pose.
+
+A far target gets a handful of the full field's samples; once a return gives a direction, the
+scan is steered onto a box of the target's radius around the last fix (:meth:`BearingMode.steered`,
+which search scans as well), where every sample can hit it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.geometry import make_T
+from perception.numeric import median
+from perception.pipeline.filter import RangeFilter
+from perception.pipeline.publish import FrameOutput
+from perception.pipeline.state import Mode, TruthScene
+from perception.sensing.pointcloud import PointCloud
+from perception.sensing.scan_patterns import make_pattern, steer_to_region
+from perception.targets import RegionOfInterest
+
+if TYPE_CHECKING:
+    from perception.pipeline.tridar import TriDAR
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["MIN_BEARING_POINTS", "BearingMode"]
+
+#: Points a frame needs for a bearing fix.
+MIN_BEARING_POINTS = 3
+
+
+class BearingMode:
+    """Bearing mode's frames, and the bearing fix and scan patterns the other modes share.
+
+    State: the range filter of the fixes and the last fix ``(centroid, t)``.
+
+    Args:
+        tri: the pipeline (configuration, sensor, mode logic, frame timing).
+    """
+
+    def __init__(self, tri: TriDAR) -> None:
+        self.tri = tri
+        self.reset()
+
+    def reset(self) -> None:
+        self.range_filter = RangeFilter(self.tri.pc.process_noise_accel**2)
+        self.last_fix: tuple[FloatArray, float] | None = None  # (centroid, t) of the last fix
+
+    # ------------------------------------------------------------------ scan patterns
+    def full_field(self, n_points: int | None = None) -> Any:
+        """The configured pattern over the whole field, its phase stepped each frame."""
+        tri = self.tri
+        sc = tri.cfg.sensor.scan
+        phase = (tri.frame_index * sc.phase_step) % (2 * np.pi)
+        return make_pattern(
+            sc.pattern, n_points or sc.n_points, tri.sensor.fov_rad, phase=phase,
+            sample_rate_hz=sc.sample_rate_hz, max_accel_rad_s2=sc.max_mirror_accel_rad_s2,
+        )
+
+    def steered(self) -> Any:
+        """Steer onto the last bearing fix (a cube of the target's radius around the centroid)."""
+        tri = self.tri
+        sc = tri.cfg.sensor.scan
+        if self.last_fix is None:
+            return self.full_field()
+        c, _ = self.last_fix
+        rad = tri.target.radius
+        box = RegionOfInterest("bearing", (0.0, 0.0, 0.0), (rad, rad, rad))
+        try:
+            return steer_to_region(
+                sc.pattern, make_T(None, c), box, tri.sensor.fov_rad, margin=0.2,
+                n_points=sc.n_points, phase=(tri.frame_index * sc.phase_step) % (2 * np.pi),
+                sample_rate_hz=sc.sample_rate_hz, max_accel_rad_s2=sc.max_mirror_accel_rad_s2,
+            )
+        except ValueError:
+            return self.full_field()
+
+    # ------------------------------------------------------------------ the fix
+    def fix(self, cloud: PointCloud, t: float, min_points: int = MIN_BEARING_POINTS) -> FrameOutput:
+        """Centroid bearing and filtered range from a cloud (any mode)."""
+        mode = self.tri.logic.mode
+        if len(cloud) < min_points:
+            return FrameOutput(t, mode, "none", t, len(cloud))
+        c = cloud.points.mean(axis=0)
+        r = np.sqrt(np.einsum("ij,ij->i", cloud.points, cloud.points))
+        t_mid = float(cloud.times.mean())
+        rng_m = median(r)
+        # Spread of returns over the target dominates the centroid's range error far out.
+        sigma = float(max(r.std() / math.sqrt(len(r)), median(cloud.sigma)))
+        rf = self.range_filter
+        rf.update(t_mid, rng_m, sigma)
+        self.last_fix = (c, t_mid)
+        bearing = np.array([np.arctan2(c[0], c[2]), np.arctan2(-c[1], np.hypot(c[0], c[2]))])
+        return FrameOutput(
+            t, mode, "bearing", t_mid, len(cloud), bearing=bearing,
+            range_m=rf.range, range_sigma=sigma,
+            range_rate=rf.range_rate if rf.rate_valid else None,
+        )
+
+    # ------------------------------------------------------------------ the frame
+    def frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        """One bearing frame at ``t`` [s]: scan, fix, and hand over to search once the fix holds."""
+        tri = self.tri
+        # Full field until a fix; then the scan is steered onto the last fix (a small, far target
+        # gets a handful of the full-field samples, and every sample once steered).
+        recent = self.last_fix is not None and t - self.last_fix[1] <= 5.0
+        cloud = tri.scan(scene, t, self.steered() if recent else self.full_field())
+        if recent and len(cloud) < MIN_BEARING_POINTS:
+            self.last_fix = None  # lost it: back to the full field next frame
+        tri.last_cloud = cloud
+        # In the full field a single return already gives a direction to steer onto; the steered
+        # scans that follow must then confirm it with MIN_BEARING_POINTS returns.
+        out = self.fix(cloud, t, MIN_BEARING_POINTS if recent else 1)
+        tri.busy_until = cloud.t_end + tri.pc.bearing_latency_s
+        out.available_t = tri.busy_until
+        tri.publisher.append(out)
+        tri.logic.after_bearing(
+            t, out.range_m if out.kind == "bearing" else None, len(cloud), MIN_BEARING_POINTS
+        )
+        if tri.logic.mode == Mode.SEARCH:
+            tri.search_started = t

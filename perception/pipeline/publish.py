@@ -1,0 +1,159 @@
+"""Publishing: frame outputs queued until the processor is done with them, and the state vector at
+the call time with its integrity (protection level, correlated-error terms, degraded flag).
+
+A frame's result (:class:`FrameOutput`) becomes available ``latency`` seconds after its scan ends;
+:meth:`Publisher.publish` returns the newest available one with the filter state propagated from its
+measurement time to the call time (what a navigation filter publishes). A pose older than
+``max_pose_age`` is no longer published as valid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.config import PipelineConfig
+from perception.geometry import fast_matrix_to_quat
+from perception.pipeline.filter import EgoMotion, PoseFilter
+from perception.pipeline.integrity import (
+    alert_limit,
+    integrity_factor,
+    port_covariance,
+    protection_level,
+    turn_about,
+)
+from perception.pipeline.state import INVALID_VARIANCE, Mode, StateVector, Validity
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["FrameOutput", "Publisher", "lever"]
+
+
+@dataclass
+class FrameOutput:
+    """A frame's result, published once the processor is done with it."""
+
+    available_t: float
+    mode: Mode
+    kind: str  # "bearing" | "pose" | "none"
+    t_meas: float
+    n_points: int
+    fitness: float = 0.0
+    bearing: FloatArray | None = None
+    range_m: float = 0.0
+    range_sigma: float = 0.0
+    range_rate: float | None = None
+    filt: PoseFilter | None = None
+    n_updates: int = 0
+    ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
+    lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
+
+
+def lever(points: FloatArray) -> float:
+    """RMS distance [m] of ``points`` (N, 3) from their centroid (inf for none)."""
+    if len(points) == 0:
+        return math.inf
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+
+
+class Publisher:
+    """The queue of frame outputs and the state vector published from the newest available one.
+
+    Args:
+        pc: the pipeline configuration (its ``integrity`` section).
+        r_port: (3,) the docking port's position in the target frame [m].
+        max_pose_age: age [s] beyond which a measurement is no longer published as valid.
+    """
+
+    def __init__(self, pc: PipelineConfig, r_port: FloatArray, max_pose_age: float) -> None:
+        self.pc = pc
+        self.r_port = r_port
+        self.max_pose_age = max_pose_age
+        self.reset()
+
+    def reset(self) -> None:
+        self.pending: list[FrameOutput] = []
+        self.published: FrameOutput | None = None
+
+    def append(self, out: FrameOutput) -> None:
+        """Queue a frame's output (published from ``out.available_t`` on)."""
+        self.pending.append(out)
+
+    def publish(self, t: float, mode: Mode, ego: EgoMotion | None) -> StateVector:
+        """The state vector at ``t`` [s] from the newest output available then.
+
+        Args:
+            t: call time [s].
+            mode: the pipeline's mode now.
+            ego: the host's latest rates, which carry the filter state to ``t`` (None: none).
+        """
+        ready = [o for o in self.pending if o.available_t <= t + 1e-9]
+        if ready:
+            self.published = ready[-1]
+            self.pending = [o for o in self.pending if o.available_t > t + 1e-9]
+        out = self.published
+        if out is None:
+            return StateVector.invalid(t, mode)
+        bearing_ok = out.bearing is not None and (t - out.t_meas) <= self.max_pose_age
+        valid_kw: dict[str, bool] = {}
+        kw: dict[str, Any] = {}
+        if bearing_ok:
+            valid_kw.update(bearing=True, range=True, range_rate=out.range_rate is not None)
+            kw.update(bearing=out.bearing, range=out.range_m,
+                      range_rate=out.range_rate if out.range_rate is not None else 0.0)
+        cov = np.eye(12) * INVALID_VARIANCE
+        pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
+        if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
+            self._pose(out, out.filt, t, ego, cov, valid_kw, kw)
+        return StateVector(
+            t=t, mode=mode, valid=Validity(**valid_kw), covariance=cov, fitness=out.fitness,
+            n_points=out.n_points, latency=max(t - out.t_meas, 0.0), **kw,
+        )
+
+    def _pose(self, out: FrameOutput, filt: PoseFilter, t: float, ego: EgoMotion | None,
+              cov: FloatArray, valid_kw: dict[str, bool], kw: dict[str, Any]) -> None:
+        """The tracked pose, rates and covariance at ``t``, with their integrity (in place)."""
+        f = filt.copy()
+        if ego is not None:
+            f.set_ego(ego)  # the host's latest rates carry the state to now
+        if t > f.t:
+            f.predict(t)
+        fp, fv, fR, fw, fP = f.target_state()
+        rates_ok = out.n_updates >= 3
+        valid_kw.update(position=True, attitude=True, velocity=rates_ok, angular_velocity=rates_ok)
+        rng_m = float(np.linalg.norm(fp))
+        kw.update(position=fp, quaternion=fast_matrix_to_quat(fR), range=rng_m,
+                  bearing=np.array([np.arctan2(fp[0], fp[2]), np.arctan2(-fp[1], np.hypot(fp[0], fp[2]))]))
+        valid_kw.update(bearing=True, range=True)
+        blocks = [slice(0, 3), slice(6, 9)]
+        if rates_ok:
+            kw.update(velocity=fv, angular_velocity=fw, range_rate=float(fp @ fv / max(rng_m, 1e-9)))
+            valid_kw["range_rate"] = True
+            blocks += [slice(3, 6), slice(9, 12)]
+        # The registrations' correlated error does not average down: published on top.
+        ig = self.pc.integrity
+        r_port = self.r_port
+        port_rng = float(np.linalg.norm(fp + fR @ r_port))
+        fP = fP.copy()
+        # The correlated displacement b of the scanned surface turns the registration by up
+        # to b over the scan's lever arm: published on the attitude as the position's is,
+        # as a turn about the port (the origin moves with it; the port's bound does not).
+        bias = max(ig.bias_m, ig.bias_rad * port_rng)
+        fP.flat[0:36:13] += bias**2
+        fP = turn_about(fP, fR, r_port, (bias / max(out.lever_m, 1e-3)) ** 2)
+        for a in blocks:
+            for b in blocks:
+                cov[a, b] = fP[a, b]
+        # Integrity: the port's error bound from the filter's full pose covariance (the
+        # unobservable directions of the registrations grow there, not in the floors).
+        pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
+        pl += out.ambiguity_m  # the port may be where a twin the scan allows puts it
+        al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
+        kw.update(protection_level=pl, alert_limit=al)
+        # A track is trusted once confirmed by a few accepted frames (its rates estimated; an
+        # acquisition's transient is not yet inside the filter's covariance).
+        valid_kw["degraded"] = pl > al or out.n_updates < ig.confirm_frames

@@ -1,0 +1,285 @@
+"""Tracking mode: scan a region of interest around the predicted pose, de-skew, register from the
+prediction, refine by the outline where ICP leaves axes unobserved, and update the filter.
+
+A registration the filter's innovation gate rejects is kept; a few in a row that agree with one
+another restart the filter on them (keeping its rates) rather than dropping a good track. The
+ambiguity monitor (:class:`~perception.pipeline.twins.TwinMonitor`) runs on the accepted frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.config import PipelineConfig
+from perception.estimation.registration import RegistrationResult, icp
+from perception.geometry import cross_rows, pose_error, skew
+from perception.numeric import median
+from perception.pipeline.modes import FrameVerdict
+from perception.pipeline.publish import FrameOutput, lever
+from perception.pipeline.state import Mode, TruthScene
+from perception.sensing.pointcloud import PointCloud
+from perception.sensing.scan_patterns import angles_to_directions
+
+if TYPE_CHECKING:
+    from perception.pipeline.filter import PoseFilter
+    from perception.pipeline.tridar import TriDAR
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["MIN_REGISTRATION_POINTS", "TrackingMode", "deskew", "measurement_cov"]
+
+#: Points a frame needs for a registration.
+MIN_REGISTRATION_POINTS = 12
+
+
+def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:
+    """Move every point to where it would be at ``t_ref`` under a constant-rate motion estimate.
+
+    Args:
+        cloud: points with their sample times.
+        motion_T: an object with ``p``, ``v``, ``R``, ``w``, ``t`` (a :class:`PoseFilter` state).
+        t_ref: reference time [s].
+
+    Returns:
+        (N, 3) de-skewed points [m], sensor frame.
+    """
+    if len(cloud) == 0:
+        return cloud.points.copy()
+    f = motion_T
+    tau_i = cloud.times - f.t
+    tau_r = t_ref - f.t
+    p_i = f.p + np.outer(tau_i, f.v)
+    p_r = f.p + f.v * tau_r
+    x = cloud.points - p_i
+    w = np.asarray(f.w, dtype=np.float64)
+    rate = float(np.sqrt(w @ w))
+    if rate == 0.0:
+        return x + p_r
+    # Rodrigues about the one axis w / |w|, by the angle rate (tau_r - tau_i) of each point.
+    k = w / rate
+    ang = rate * (tau_r - tau_i)
+    c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
+    kx = cross_rows(np.broadcast_to(k, x.shape), x)
+    return x * c + kx * s + np.outer(x @ k, k) * (1.0 - c) + p_r
+
+
+def measurement_cov(res: RegistrationResult, r_port: FloatArray, pc: PipelineConfig) -> FloatArray:
+    """Registration covariance plus the configured floors (what the bound leaves out).
+
+    The floors are added about the filter's reference point (the docking port, ``r_port`` (3,)
+    [m] in the target frame), where the scan looks and where they were measured: added about a
+    centre of mass 12 m behind the port, the attitude floor alone would put 0.3 deg x 12 m = 6 cm
+    of position error on a port whose position is known to a few millimetres.
+    """
+    a = res.T_sensor_target[:3, :3] @ r_port
+    J = np.eye(6)
+    J[:3, 3:] = -skew(a)  # origin -> port: dp_port = dp - [a]x dtheta
+    cov = J @ res.covariance @ J.T
+    cov.flat[0:21:7] += pc.measurement_floor_m**2
+    cov.flat[21::7] += math.radians(pc.measurement_floor_deg) ** 2
+    J[:3, 3:] = skew(a)  # and back
+    cov = J @ cov @ J.T
+    return 0.5 * (cov + cov.T)
+
+
+class TrackingMode:
+    """Tracking mode's frames, the filter's gate-reject handling and the outline refinement.
+
+    State: the gate's rejections in a row and their registrations, and the frame's scan pattern
+    (for the outline refinement).
+
+    Args:
+        tri: the pipeline (sensor, model, filter, mode logic, planner, track bookkeeping).
+    """
+
+    def __init__(self, tri: TriDAR) -> None:
+        self.tri = tri
+        self.reset()
+
+    def reset(self) -> None:
+        self.clear_rejects()
+        self.frame_pattern: tuple[Any, float] | None = None  # (pattern, start time) of the frame
+
+    def clear_rejects(self) -> None:
+        """Forget the gate's rejections (an accepted update, a new track or filter)."""
+        self.gate_rejects = 0
+        self.rejected: list[tuple[float, FloatArray, FloatArray]] = []  # since the last update
+
+    # ------------------------------------------------------------------ the scan
+    def pattern(self, T_pred: FloatArray, t: float = 0.0) -> tuple[Any, str]:
+        """The scan pattern around the predicted pose ``T_pred`` and the name of its region."""
+        tri = self.tri
+        rng_m = float(np.linalg.norm(T_pred[:3, 3]))
+        region = tri.logic.region_for_range(rng_m)
+        roi = tri.target.regions.get(region) or tri.target.regions["whole"]
+        if tri.planner is not None:
+            weak = tri.last_result is not None and bool(tri.last_result.degenerate_axes)
+            roi, _ = tri.planner.choose(T_pred, region, tri.frame_index, t, weak)
+            region = roi.name
+        try:
+            pattern = tri.sensor.make_scan_pattern(tri.frame_index, T_pred, roi)
+        except ValueError:
+            pattern = tri.bearing.full_field()
+        return pattern, region
+
+    # ------------------------------------------------------------------ the frame
+    def frame(self, scene: TruthScene | PointCloud, t: float) -> None:
+        """One tracking frame at ``t`` [s]."""
+        tri = self.tri
+        f = tri.filter
+        T_start = f.pose_at(t)
+        pattern, _ = self.pattern(T_start, t)
+        cloud = tri.scan(scene, t, pattern)
+        tri.last_cloud = cloud
+        tri.busy_until = cloud.t_end + tri.pc.tracking_latency_s
+        n = len(cloud)
+        if n < MIN_REGISTRATION_POINTS:
+            reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
+            lost = tri.logic.record(t, FrameVerdict(False, reason))
+            self.after_loss(lost, t)
+            tri.publisher.append(FrameOutput(tri.busy_until, tri.logic.mode, "none", t, n))
+            return
+        t_ref = float(0.5 * (cloud.t_start + cloud.t_end))
+        pts = deskew(cloud, f, t_ref)
+        T_pred = f.pose_at(t_ref)
+        # On an established track (rates estimated, the last frames accepted) the prediction is
+        # within a few sigma of the answer: ICP starts in its fine phase.
+        settled = (tri.pc.fine_only_tracking and tri.n_updates >= 3
+                   and tri.logic.bad_frames == 0 and self.gate_rejects == 0)
+        icp_cfg = tri.logic.icp_config_for(cloud.subsystem)
+        res = icp(pts, tri.model, T_pred, sigma=cloud.sigma, directions=cloud.directions,
+                  config=icp_cfg, coarse=not settled)
+        self.frame_pattern = None if isinstance(scene, PointCloud) else (pattern, t)
+        res = self.outline_refine(res, pts, cloud)
+        tri.last_result = res
+        tri.stats.registration_time_s.append(res.time_s)
+        expected = max(median(cloud.sigma), tri.pc.measurement_floor_m)
+        # With a running filter the consistency test is its innovation gate, which weighs each
+        # direction by the registration's covariance: a pose that slides along a direction the
+        # geometry leaves unobservable (degenerate_axes) is not a jump, it is uninformative.
+        verdict = tri.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
+                                  res.T_sensor_target, None)
+        if verdict.good:
+            verdict = self._update(t_ref, res, expected, verdict)
+        if verdict.good and tri.n_updates > 0:
+            tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
+        lost = tri.logic.record(t, verdict)
+        self.after_loss(lost, t)
+        out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
+                          t_ref, n, fitness=res.fitness, filt=tri.filter.copy(), n_updates=tri.n_updates,
+                          ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts))
+        bfix = tri.bearing.fix(cloud, t)
+        out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
+        tri.publisher.append(out)
+
+    def _update(self, t_ref: float, res: RegistrationResult, expected: float,
+                verdict: FrameVerdict) -> FrameVerdict:
+        """The filter's update on a good registration; the frame's verdict after it."""
+        tri = self.tri
+        cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
+        upd = tri.filter.update(t_ref, res.T_sensor_target, cov)
+        if upd.accepted:
+            self.clear_rejects()
+            tri.n_updates += 1
+            tri.last_pose_t = t_ref
+            return verdict
+        # The registration is sound but the filter disagrees: an unmodelled manoeuvre or an
+        # overconfident filter. After a few such frames that agree with one another,
+        # restart the filter on them (keeping the rates) rather than dropping a good track.
+        # Rejected registrations that disagree with one another as well (ICP in another
+        # basin each frame: the roll of a near-cylindrical bus 20-40 deg off under a 2 deg
+        # sigma) are not a track to restart on: they count towards loss of track.
+        self.gate_rejects += 1
+        self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov)]
+        self.rejected = self.rejected[-tri.pc.filter_reinit_frames:]
+        restart = None
+        if self.gate_rejects >= tri.pc.filter_reinit_frames and not res.degenerate_axes:
+            restart = self._restart_on_rejected(tri.filter)
+        if restart is None:
+            return tri.logic.judge(True, res.fitness, res.inlier_rmse, expected,
+                                   res.T_sensor_target, None, filter_accepted=False)
+        tri.filter = restart
+        self.clear_rejects()
+        tri.stats.filter_reinits += 1
+        tri.n_updates = 1
+        tri.last_pose_t = t_ref
+        return verdict
+
+    def _restart_on_rejected(self, f: PoseFilter) -> PoseFilter | None:
+        """A filter restarted on the registrations the gate rejected in a row (keeping ``f``'s
+        rates and their covariance: the motion between the frames is the track's), if each of
+        them passes the gate of the one restarted on those before it; else None."""
+        v_origin = f.target_state()[1]
+        g = f.copy()
+        (t0, T0, C0), *rest = self.rejected
+        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w)
+        P = g.P.copy()
+        for rates in (slice(3, 6), slice(9, 12)):
+            P[rates, rates] = f.P[rates, rates]
+        g.P = P
+        for t_k, T_k, C_k in rest:
+            if not g.update(t_k, T_k, C_k).accepted:
+                return None
+        return g
+
+    def after_loss(self, lost: bool, t: float) -> None:
+        """On loss of track: keep the track's filter for reacquisition and reset the live one."""
+        if lost:
+            tri = self.tri
+            tri.stats.losses += 1
+            if tri.filter.initialized:
+                tri.lost_track = tri.filter.copy()
+            tri.filter.reset()
+            tri.n_updates = 0
+            tri.search_started = t
+
+    # ------------------------------------------------------------------ outline refinement
+    def outline_refine(self, res: RegistrationResult, pts: FloatArray, cloud: PointCloud) -> RegistrationResult:
+        """Where ICP left axes unobserved, add what the scan says about the outline.
+
+        The samples of the frame's pattern that gave no return bound the target as much as the
+        returns locate its surface: where the scan's curve crosses the outline, the model's
+        outline must cross the same short arc (:func:`perception.estimation.silhouette.scan_outline_pairs`,
+        the scanning form of seed 003's depth-map outline). A flat face seen head-on, which
+        point-to-plane ICP cannot place in its plane, is placed by its edges. The refinement is
+        kept when it converges, observes more axes than ICP did and stays within a frame's jump of
+        ICP's pose; its covariance is the joint information's.
+        """
+        tri = self.tri
+        if not (res.degenerate_axes and tri.pc.outline_refinement and self.frame_pattern is not None):
+            return res
+        from perception.estimation.silhouette import (
+            FlashGeometry,
+            refine_with_outline,
+            scan_outline_pairs,
+        )
+
+        pattern, t0 = self.frame_pattern
+        dirs = angles_to_directions(pattern.az, pattern.el)
+        returned = np.isin(t0 + pattern.times, cloud.times)
+        a, b = scan_outline_pairs(dirs, returned)
+        if a.size < 3:
+            return res
+        geom = FlashGeometry(dirs, 1, dirs.shape[0], 0.05, 0.0, math.inf)
+        icp_cfg = tri.logic.icp_config_for(cloud.subsystem)
+        ref = refine_with_outline(
+            pts, cloud.directions, cloud.sigma, dirs[a], dirs[b], tri.model_target, tri.model,
+            res.T_sensor_target, geom, noise_floor_fraction=icp_cfg.noise_floor_fraction,
+            back_facing_cos=icp_cfg.back_facing_cos, gate_m=max(3.0 * res.inlier_rmse, 0.05),
+        )
+        tri.stats.outline_refinements += 1
+        if not ref.converged or len(ref.degenerate_axes) >= len(res.degenerate_axes):
+            return res
+        # A refinement that turns or moves the pose further than a frame may jump has found
+        # another basin of the outline (a near-symmetric twin), not the slide it is there for.
+        dt, dr = pose_error(ref.T_sensor_target, res.T_sensor_target)
+        if dt > tri.pc.max_jump_m or dr > tri.pc.max_jump_deg:
+            return res
+        tri.stats.outline_accepted += 1
+        return dataclasses.replace(ref, fitness=res.fitness, inlier_rmse=res.inlier_rmse,
+                                   n_inliers=res.n_inliers, time_s=res.time_s + ref.time_s)

@@ -1,0 +1,174 @@
+"""The ambiguity monitor of a track: does a near-symmetric turn of the tracked pose (a twin)
+explain the scan as well, or better?
+
+ICP runs from ``T @ G`` for each near-symmetry ``G`` of the model (PAH's near-symmetry search) and
+the converged alternatives are scored as PAH ranks hypotheses
+(:meth:`~perception.estimation.pah.PAHDatabase.verify_poses`). Two uses, on their own schedules:
+
+- integrity (``integrity.ambiguity_check_period_s``, and on every new track's first
+  ``confirm_frames`` frames): while a twin scores within ``ambiguity_margin`` of the tracked pose,
+  or above it, the scan cannot tell them apart and the port may be where the twin puts it: the
+  protection level grows by the port's offset between the two poses (a roll twin of a nearly
+  symmetric bus, locked at acquisition, was 0.45 m off at 10-15 m under a 3 cm protection level);
+- switching (``symmetry_check_period_s``): a twin whose score beats the tracked pose's by
+  ``symmetry_margin`` gets a vote, and ``symmetry_switch_checks`` votes in a row for the same turn
+  move the track there (the filter restarts on it, keeping its rates). A track that locked onto
+  the flipped twin of a nearly symmetric target at 60 m, where the features that tell them apart
+  are a few noisy points, is put right once they are resolved.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from perception.config import ICPConfig
+from perception.estimation.registration import RegistrationResult, icp
+from perception.pipeline.search import corridor_constraint
+from perception.pipeline.tracking import measurement_cov
+from perception.sensing.pointcloud import PointCloud
+
+if TYPE_CHECKING:
+    from perception.pipeline.tridar import TriDAR
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["TwinMonitor"]
+
+#: ``(turn index, registration, PAH score)`` of a converged near-symmetric alternative.
+Alternative = tuple[int, RegistrationResult, float]
+
+
+class TwinMonitor:
+    """The ambiguity monitor of the pipeline's track (see the module docstring).
+
+    Attributes:
+        twins_open: indices of the near-symmetric turns the scans have not yet ruled out: None,
+            all of them (a track that PAH started from nothing); empty for a track that carries a
+            prior.
+        ambiguity_m: the port's largest offset [m] to an open twin (added to the protection level).
+
+    Args:
+        tri: the pipeline (configuration, model, PAH database, filter, track bookkeeping).
+    """
+
+    def __init__(self, tri: TriDAR) -> None:
+        self.tri = tri
+        self.reset()
+
+    def reset(self) -> None:
+        self.sym_checked_t = -np.inf
+        self.amb_checked_t = -np.inf
+        self.ambiguity_m = 0.0
+        self.twins_open: set[int] | None = set()
+        self.sym_votes = 0
+        self.sym_candidate = -1
+
+    def start(self, all_open: bool) -> None:
+        """A new track: all twins open (PAH's answer may be a twin of the truth), or none (a seed
+        or a lost track's prediction, whose continuity has ruled them out)."""
+        self.twins_open = None if all_open else set()
+        self.ambiguity_m = 0.0
+
+    def monitor(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
+                t_ref: float, icp_cfg: ICPConfig) -> None:
+        """Check a tracking frame's registration ``res`` of the de-skewed points ``pts`` (N, 3)
+        [m] for twins, where a check is due at ``t_ref`` [s]."""
+        tri = self.tri
+        pc = tri.pc
+        ig = pc.integrity
+        amb_due = ig.ambiguity_check_period_s is not None and self.twins_open != set() and (
+            tri.n_updates <= ig.confirm_frames
+            or t_ref - self.amb_checked_t >= ig.ambiguity_check_period_s - 1e-9)
+        sym_due = pc.symmetry_check_period_s is not None and \
+            t_ref - self.sym_checked_t >= pc.symmetry_check_period_s - 1e-9
+        if not (amb_due or sym_due):
+            return
+        G = tri.pah.near_symmetries()
+        if amb_due:
+            self.amb_checked_t = t_ref
+        if sym_due:
+            self.sym_checked_t = t_ref
+        if len(G) == 0:
+            self.twins_open, self.ambiguity_m = set(), 0.0
+            return
+        tri.stats.symmetry_checks += 1
+        score0, alts = self.alternatives(pts, cloud, res, icp_cfg, G)
+        if amb_due:
+            self._rule_out(res.T_sensor_target, score0, alts, len(G))
+        if sym_due:
+            self._vote(pts, cloud, t_ref, score0, alts)
+
+    def _rule_out(self, T: FloatArray, score0: float, alts: list[Alternative], n_turns: int) -> None:
+        """Integrity: keep open the twins that explain the scan about as well as the tracked pose
+        ``T``, and the port's largest offset to them."""
+        tri = self.tri
+        ig = tri.pc.integrity
+        # A twin stays open while it explains the scan about as well (or better); one that
+        # explains it clearly worse, or does not converge, is ruled out for this track.
+        # The mission's approach corridor, where configured, rules out a twin as PAH's search
+        # does (a plate flipped about an in-plane axis is the same solid, port behind it).
+        corridor = corridor_constraint(tri.pc, tri.R_nominal)
+        close = {i: a for i, a, s_alt in alts if s_alt >= score0 - ig.ambiguity_margin
+                 and (corridor is None or corridor.admits(a.T_sensor_target))}
+        prev = set(range(n_turns)) if self.twins_open is None else self.twins_open
+        self.twins_open = prev & set(close)
+        r = tri.model_target.T_target_port[:3, 3]
+        port = T[:3, :3] @ r + T[:3, 3]
+        self.ambiguity_m = max(
+            (float(np.linalg.norm(close[i].T_sensor_target[:3, :3] @ r
+                                  + close[i].T_sensor_target[:3, 3] - port))
+             for i in self.twins_open), default=0.0)
+
+    def _vote(self, pts: FloatArray, cloud: PointCloud, t_ref: float, score0: float,
+              alts: list[Alternative]) -> None:
+        """Switching: a vote for a twin that clearly beats the tracked pose; enough in a row for
+        the same one move the track there."""
+        tri = self.tri
+        pc = tri.pc
+        best = max(alts, key=lambda a: a[2], default=None)
+        if best is None or best[2] <= score0 + pc.symmetry_margin:
+            self.sym_votes, self.sym_candidate = 0, -1
+            return
+        best_i, best_res, _ = best
+        self.sym_votes = self.sym_votes + 1 if best_i == self.sym_candidate else 1
+        self.sym_candidate = best_i
+        if self.sym_votes < pc.symmetry_switch_checks:
+            return
+        best_res = tri.tracking.outline_refine(best_res, pts, cloud)
+        f = tri.filter
+        v_origin = f.target_state()[1]
+        f.initialize(t_ref, best_res.T_sensor_target,
+                     measurement_cov(best_res, tri.target.T_target_port[:3, 3], pc),
+                     velocity=v_origin, omega=f.w)
+        tri.last_result = best_res
+        tri.stats.symmetry_switches += 1
+        self.sym_votes, self.sym_candidate = 0, -1
+        tri.n_updates = max(tri.n_updates, 3)
+        # The old pose is now a twin (clearly worse); the others are judged again from here.
+        self.twins_open, self.amb_checked_t = None, -np.inf
+
+    def alternatives(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
+                     icp_cfg: ICPConfig, G: FloatArray) -> tuple[float, list[Alternative]]:
+        """The tracked pose's PAH score and the converged near-symmetric alternatives
+        ``(turn index, registration, score)`` for the turns ``G`` (K, 4, 4)."""
+        tri = self.tri
+        pah = tri.pah
+        T = res.T_sensor_target
+        sigma, dirs = cloud.sigma, cloud.directions
+        fit, score = pah.verify_poses(pts, sigma, np.concatenate([T[None], T @ G]), dirs)
+        # Turns that show the sensor another side of the target explain little even before ICP:
+        # only the near-fits are polished (with capped work: a turn that is not a better basin
+        # need not converge) and scored again.
+        cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
+        alts: list[tuple[int, RegistrationResult]] = []
+        for i in np.flatnonzero(fit[1:] >= 0.5 * fit[0]):
+            alt = icp(pts, tri.model, T @ G[i], sigma=sigma, directions=dirs, config=cfg)
+            if alt.converged:
+                alts.append((int(i), alt))
+        if not alts:
+            return float(score[0]), []
+        _, s_alt = pah.verify_poses(pts, sigma, np.stack([a.T_sensor_target for _, a in alts]), dirs)
+        return float(score[0]), [(i, a, float(s)) for (i, a), s in zip(alts, s_alt)]

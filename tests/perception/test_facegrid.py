@@ -13,7 +13,7 @@ import numpy.typing as npt
 import pytest
 import trimesh
 
-from perception.estimation.facegrid import FaceGrid
+from perception.estimation.registration.facegrid import FaceGrid
 from perception.shapes import SHAPE_KINDS, generate_target
 from perception.targets import LIBRARY, load_target
 
@@ -146,7 +146,11 @@ def _reference_build(
 
 def _slot_distances(grid: FaceGrid, mesh: trimesh.Trimesh) -> FloatArray:
     """Distance [m] of each candidate slot's voxel centre to its face."""
-    from perception.estimation.facegrid import _face_table, _triangle_distances, _unit_normals
+    from perception.estimation.registration.facegrid import (
+        _face_table,
+        _triangle_distances,
+        _unit_normals,
+    )
 
     tris = np.asarray(mesh.triangles, dtype=np.float64)
     table = _face_table(tris, _unit_normals(tris)[0], grid.band)
@@ -175,7 +179,7 @@ def _assert_equivalent(new: FaceGrid, ref: FaceGrid, mesh: trimesh.Trimesh, seed
     np.testing.assert_allclose(
         _slot_distances(new, mesh), _slot_distances(ref, mesh), rtol=0, atol=1e-12
     )
-    from perception.estimation.facegrid import _facets
+    from perception.estimation.registration.facegrid import _facets
 
     facet = _facets(mesh)[1]
     row = np.repeat(np.arange(new.starts.size - 1), np.diff(new.starts))
@@ -248,7 +252,7 @@ def test_build_matches_the_reference_on_curved_and_tilted_meshes(
 
 def test_small_batches_give_the_same_grid(monkeypatch: pytest.MonkeyPatch) -> None:
     """Batching of the voxel-face pairs does not change the result (one face per batch here)."""
-    import perception.estimation.facegrid as fg
+    import perception.estimation.registration.facegrid as fg
 
     mesh = generate_target("cylinder_bus", 3).model_mesh
     ref = FaceGrid.build(mesh)

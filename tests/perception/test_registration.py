@@ -455,7 +455,7 @@ def test_fine_only_icp_from_a_tracked_prediction(name: str, range_m: float, sigm
 def test_final_pass_reusing_the_last_matches_equals_a_fresh_one(monkeypatch) -> None:
     """After a sub-tolerance step ICP keeps the last iteration's faces for the final fit; the
     fitness and covariance equal those of a fresh correspondence search at the returned pose."""
-    import perception.estimation.registration as reg
+    from perception.estimation.registration import tracking as reg
 
     target = load_target("cygnss")
     model = prepare_model(target)

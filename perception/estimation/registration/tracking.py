@@ -1,3 +1,4 @@
+# Long module: moved whole from perception/estimation/registration.py (history); split next.
 """ICP tracking (seed 000 section 3.2) and the pose covariance / Cramer-Rao bound of a frame.
 
 The model side is prepared once per target (:func:`prepare_model`): dense area-uniform surface
@@ -37,7 +38,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from perception.config import ICPConfig
-from perception.estimation.facegrid import FaceGrid
+from perception.estimation.registration.facegrid import FaceGrid
 from perception.geometry import (
     check_rigid,
     cross_rows,

@@ -10,7 +10,7 @@ Names:
     ``lqr``: :class:`agents.lqr.LQRController`.
     ``sync``: :class:`agents.sync.SyncController` (synchronised approach to a tumbling port).
     ``sb3:<path>``: a saved stable-baselines3 policy (``model.zip`` or its run folder) through
-        :func:`agents.training.load_policy`, deterministic actions.
+        :func:`agents.policies.load_policy`, deterministic actions.
     ``<module>:<Class>``: any importable class taking ``(cfg)``.
 
 Example:
@@ -54,7 +54,8 @@ def _resolve(spec: str, name: str) -> Callable[..., Any]:
         ) from None
     factory = getattr(module, attr, None)
     if not callable(factory):
-        raise ValueError(
+        # ValueError, as for every bad name: callers report a bad controller name in one line.
+        raise ValueError(  # noqa: TRY004
             f"controller {name!r}: module {module_name!r} has no callable {attr!r}"
         )
     return factory
@@ -78,7 +79,7 @@ def make_controller(name: str, cfg: MissionConfig) -> Callable[..., Any]:
     if not isinstance(name, str) or not name:
         raise ValueError(f"controller={name!r}; expected a non-empty name")
     if name.startswith("sb3:"):
-        from agents.training import load_policy
+        from agents.policies import load_policy
 
         return load_policy(name[4:], cfg=cfg)
     if name in CONTROLLERS:

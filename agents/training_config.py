@@ -1,0 +1,171 @@
+"""The training recipe: the models of a training YAML and the pure helpers derived from them.
+
+:class:`TrainingConfig` (with :class:`NormalizeConfig` and :class:`PretrainConfig`) is what
+``configs/training/*.yaml`` hold; the file names of a run folder are here too, so that the trainer
+(:mod:`agents.training`) that writes them and the loader (:mod:`agents.policies`) that reads them
+agree. Checking a config against the env and the controllers is :func:`agents.training.validate_training`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from perception.config import MissionConfig, config_path
+
+__all__ = [
+    "CHECKPOINT_DIR",
+    "CONFIG_FILE",
+    "MODEL_FILE",
+    "PRETRAIN_FILE",
+    "STATS_FILE",
+    "NormalizeConfig",
+    "PretrainConfig",
+    "TrainingConfig",
+    "algo_class",
+    "bare_id",
+    "env_args",
+    "mission_path",
+    "policy_kwargs",
+]
+
+MODEL_FILE = "model.zip"
+STATS_FILE = "vecnormalize.npz"
+CONFIG_FILE = "training.yaml"
+PRETRAIN_FILE = "pretrain.json"
+CHECKPOINT_DIR = "checkpoints"
+
+
+class NormalizeConfig(BaseModel):
+    """``VecNormalize`` settings (running mean/variance of observations and returns)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    obs: bool = True
+    reward: bool = True
+    clip_obs: Annotated[float, Field(gt=0)] = 10.0
+    clip_reward: Annotated[float, Field(gt=0)] = 10.0
+
+
+class PretrainConfig(BaseModel):
+    """Behaviour-cloning warm start from a scripted controller (PPO only).
+
+    Before PPO starts, ``controller`` flies ``episodes`` episodes of the training env (its
+    executed actions perturbed by Gaussian ``action_noise`` so that the demonstrations also show
+    how to recover from small mistakes; the labels are the controller's clean actions). The
+    observation statistics of ``VecNormalize`` are initialised from those states, the policy mean
+    is fitted to the actions (mean squared error) and the value head to the demonstrations'
+    normalised discounted returns, for ``epochs`` passes; the policy's log standard deviation is
+    then set to ``log_std``. PPO fine-tunes from there on the env's reward; during its first
+    ``critic_warmup_steps`` steps only the value function learns (the actor is frozen), so that
+    the first policy updates use advantages from a critic fitted to the env's own returns.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    controller: str = "glideslope"
+    episodes: Annotated[int, Field(ge=1)] = 100
+    action_noise: Annotated[float, Field(ge=0)] = 0.1
+    epochs: Annotated[int, Field(ge=1)] = 40
+    batch_size: Annotated[int, Field(ge=1)] = 256
+    learning_rate: Annotated[float, Field(gt=0)] = 1e-3
+    log_std: float = -2.5
+    critic_warmup_steps: Annotated[int, Field(ge=0)] = 0
+
+
+class TrainingConfig(BaseModel):
+    """A training run (one YAML file in ``configs/training``).
+
+    Attributes:
+        name: run name (default output folder ``runs/train/<name>``, TensorBoard run name): a plain
+            folder name (letters, digits, ``.``, ``_``, ``-``).
+        algo: ``ppo`` or ``sac``.
+        env_id: registered id; ``mission`` optionally replaces its mission file.
+        perception: what the policy sees while training (``truth+noise`` is the intended mode).
+        config: mission-config overrides, ``__``-nested (e.g. ``env__truth_noise_position_m``),
+            used in training and by default in :func:`evaluate`.
+        train_config: overrides applied on top of ``config`` only while training (e.g. a wider
+            start distribution as a curriculum); evaluation flies the mission without them.
+        total_timesteps: environment steps over all envs.
+        n_envs: parallel envs; ``vec_env`` ``subproc`` (one process each) or ``dummy``.
+        seed: seeds SB3, torch and the envs (env ``k`` gets ``seed + k``).
+        normalize: VecNormalize settings.
+        checkpoint_every_steps: save model + statistics every this many total steps (None: off).
+        net_arch, activation, log_std_init: policy network.
+        hyperparams: keyword arguments of the SB3 algorithm (``learning_rate``, ``n_steps``, ...).
+        pretrain: optional behaviour-cloning warm start (:class:`PretrainConfig`, PPO only).
+        device: torch device; ``torch_threads``: intra-op threads of the learner.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "policy"
+    algo: Literal["ppo", "sac"] = "ppo"
+    env_id: str = "TriDAR/FinalApproach-v0"
+    mission: str | None = None
+    perception: Literal["truth", "truth+noise", "tridar"] = "truth+noise"
+    config: dict[str, Any] = Field(default_factory=dict)
+    train_config: dict[str, Any] = Field(default_factory=dict)
+    total_timesteps: Annotated[int, Field(ge=1)] = 1_000_000
+    n_envs: Annotated[int, Field(ge=1, le=256)] = 2
+    vec_env: Literal["subproc", "dummy"] = "subproc"
+    seed: Annotated[int, Field(ge=0)] = 0
+    normalize: NormalizeConfig = NormalizeConfig()
+    checkpoint_every_steps: Annotated[int, Field(ge=1)] | None = 100_000
+    net_arch: list[Annotated[int, Field(ge=1)]] | None = None
+    activation: Literal["tanh", "relu", "elu", "leaky_relu"] | None = None
+    log_std_init: float | None = None
+    hyperparams: dict[str, Any] = Field(default_factory=dict)
+    pretrain: PretrainConfig | None = None
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    torch_threads: Annotated[int, Field(ge=1)] = 1
+
+
+def algo_class(algo: str) -> Any:
+    """The SB3 class of ``algo`` (``ppo`` | ``sac``)."""
+    from stable_baselines3 import PPO, SAC
+
+    return {"ppo": PPO, "sac": SAC}[algo]
+
+
+def bare_id(env_id: str) -> str:
+    """The id without a ``module:`` prefix."""
+    return env_id.split(":", 1)[1] if ":" in env_id else env_id
+
+
+def mission_path(env_id: str, mission: str | None) -> Path:
+    """The mission YAML of a run: ``mission``, else the id's own file."""
+    from tridar_env.registration import ENV_IDS
+
+    return Path(mission) if mission else config_path(ENV_IDS[bare_id(env_id)])
+
+
+def env_args(cfg: TrainingConfig, mission: MissionConfig) -> tuple[str, dict[str, Any]]:
+    """``(env id, gym.make keyword arguments)`` of the training env (``train_config`` included)."""
+    env_id = cfg.env_id if ":" in cfg.env_id else f"tridar_env:{cfg.env_id}"
+    kwargs = {
+        "perception": cfg.perception, "config": cfg.mission,
+        "max_episode_steps": mission.env.max_episode_steps,
+        **{k: v for k, v in {**cfg.config, **cfg.train_config}.items()
+           if k.replace(".", "__") != "env__perception"},
+    }
+    return env_id, kwargs
+
+
+def policy_kwargs(cfg: TrainingConfig) -> dict[str, Any]:
+    """SB3 ``policy_kwargs`` of the network fields (net_arch, activation, log_std_init)."""
+    import torch
+
+    kw: dict[str, Any] = {}
+    if cfg.net_arch is not None:
+        kw["net_arch"] = list(cfg.net_arch)
+    if cfg.activation is not None:
+        kw["activation_fn"] = {
+            "tanh": torch.nn.Tanh, "relu": torch.nn.ReLU, "elu": torch.nn.ELU,
+            "leaky_relu": torch.nn.LeakyReLU,
+        }[cfg.activation]
+    if cfg.log_std_init is not None:
+        kw["log_std_init"] = cfg.log_std_init
+    return kw

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -24,6 +24,9 @@ from perception.pipeline.state import Mode, StateVector, Validity
 from perception.targets import TargetModel, load_target
 from tridar_env.observers import Observer, make_observer
 from tridar_env.world import ContactState, World
+
+if TYPE_CHECKING:
+    from tridar_env.render import RenderState
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -512,12 +515,39 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         if self._renderer is None:
             from tridar_env.render import Renderer
 
-            self._renderer = Renderer(self)
-        frame = self._renderer.draw()
+            self._renderer = Renderer()
+        frame = self._renderer.draw(self._render_state())
         if self.render_mode == "human":
             self._renderer.show(frame)
             return None
         return frame
+
+    def _render_state(self) -> RenderState:
+        """What a frame shows: the logged truth and estimate paths and the current scene."""
+        from tridar_env.render import RenderState
+
+        w, hist, sv = self.world, self.history, self._state
+        est = [h["est_r"] for h in hist if h["est_r"] is not None]
+        last = hist[-1] if hist else {}
+        valid_range = sv is not None and sv.valid.range
+        return RenderState(
+            t=w.t,
+            r_lvlh=np.array([h["r"] for h in hist]) if hist else w.state[None, :3],
+            est_r_lvlh=np.array(est) if est else None,
+            T_lvlh_port=w.T_lvlh_port,
+            corridor_half_angle_deg=(
+                self.cfg.env.corridor_half_angle_deg or self.cfg.pipeline.corridor.half_angle_deg
+            ),
+            target=self.target,
+            T_sensor_target=w.sensor_truth().T_sensor_target,
+            fov_deg=self.cfg.sensor.fov_deg,
+            cloud_points=getattr(self.observer.last_cloud, "points", None),
+            mode=last.get("mode", "-"),
+            range_m=sv.range if valid_range else None,
+            range_rate_m_s=sv.range_rate if valid_range else None,
+            pos_err_m=last.get("pos_err", np.nan),
+            att_err_deg=last.get("att_err", np.nan),
+        )
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -9,7 +9,6 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from perception.config import ICPConfig
-from perception.geometry import invert, make_T, pose_error, transform_points, transform_vectors
 from perception.estimation.registration import (
     FAILURE_VARIANCE,
     FaceGrid,
@@ -19,6 +18,7 @@ from perception.estimation.registration import (
     icp,
     prepare_model,
 )
+from perception.geometry import invert, make_T, pose_error, transform_points, transform_vectors
 from perception.targets import RegionOfInterest, TargetModel, load_target
 
 
@@ -455,20 +455,20 @@ def test_fine_only_icp_from_a_tracked_prediction(name: str, range_m: float, sigm
 def test_final_pass_reusing_the_last_matches_equals_a_fresh_one(monkeypatch) -> None:
     """After a sub-tolerance step ICP keeps the last iteration's faces for the final fit; the
     fitness and covariance equal those of a fresh correspondence search at the returned pose."""
-    from perception.estimation.registration import tracking as reg
+    from perception.estimation.registration import tracking
 
     target = load_target("cygnss")
     model = prepare_model(target)
     rng = np.random.default_rng(5)
     cfg = ICPConfig()
-    orig = reg._finish
+    orig = tracking.final_pass
     reuses = []
 
     def spy(*a, **k):
         reuses.append(a[12] if len(a) > 12 else k.get("reuse"))
         return orig(*a, **k)
 
-    monkeypatch.setattr(reg, "_finish", spy)
+    monkeypatch.setattr(tracking, "final_pass", spy)
     for _ in range(6):
         T = random_view(12.0, rng)
         P, D = raycast_scan(target.mesh, T, 1000, 0.01, rng)

@@ -11,18 +11,14 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from perception.config import CorridorConfig, ICPConfig, PAHConfig, SensorConfig
-from perception.geometry import make_T, pose_error, transform_points
-from perception.estimation.pah import (
-    PAH_FORMAT_VERSION,
-    PAHDatabase,
-    PoseConstraint,
-    _Hypothesis,
-    _kabsch_batch,
-    _pick_polygon,
-    _Scan,
-    _supported,
-)
+from perception.estimation.pah import PAH_FORMAT_VERSION, PAHDatabase, PoseConstraint
+from perception.estimation.pah.hypotheses import _Hypothesis, _Scan
+from perception.estimation.pah.polygons import _banded, _pick_polygon, _supported
+from perception.estimation.pah.poses import _kabsch_batch
+from perception.estimation.pah.symmetry import _alternatives
+from perception.estimation.pah.verify import _verify
 from perception.estimation.registration import icp, prepare_model
+from perception.geometry import make_T, pose_error, transform_points
 from perception.sensing.sensors import TriDARSensor
 from perception.targets import TargetModel, load_target
 
@@ -263,7 +259,7 @@ def test_banded_lookup_gives_exactly_the_dense_band_test(name: str) -> None:
             if use_dir:
                 ok &= proj[None, :] - proj[cand[:, 0]][:, None] >= lim * D[cand[:, 0]]
             owner, new = np.nonzero(ok)
-            got = db._banded(cand, d, tol, proj if use_dir else None, lim)
+            got = _banded(db, cand, d, tol, proj if use_dir else None, lim)
             np.testing.assert_array_equal(got[0], owner)
             np.testing.assert_array_equal(got[1], new)
             if trial:
@@ -362,7 +358,7 @@ def test_free_space_check_rejects_half_turn_flip_of_cygnss(cygnss_db: PAHDatabas
     T_flip = icp(P, mc, T @ make_T(Rotation.from_rotvec([math.pi, 0, 0]).as_matrix()),
                  sigma=sig).T_sensor_target
     assert pose_error(T_flip, T)[1] > 175.0
-    fit, like, fs = db._verify(bundle, np.stack([T_true, T_flip]), mc)
+    fit, like, fs = _verify(db.target, bundle, np.stack([T_true, T_flip]), mc)
     assert fit[0] == 1.0 and fit[1] == 1.0
     assert like[1] > like[0]  # the surface fit alone prefers the flip
     assert fs[0] == 0.0  # no ray sees through the true pose
@@ -478,11 +474,11 @@ def test_near_symmetric_alternatives_are_judged_with_the_symmetry_tolerance(
     twin = icp(cloud.points, mc, T @ np.linalg.inv(G[k]), sigma=sig,
                directions=cloud.directions, match_along_rays=True).T_sensor_target
     assert pose_error(twin, T)[1] > 45.0
-    h = _Hypothesis(twin, *(float(v[0]) for v in db._verify(bundle, twin[None], mc)))
+    h = _Hypothesis(twin, *(float(v[0]) for v in _verify(db.target, bundle, twin[None], mc)))
     Ts = np.einsum("ij,kjl->kil", twin, G)
     near = int(np.argmin([pose_error(Tk, T)[1] for Tk in Ts]))
-    raw_fit = db._verify(bundle, Ts[near : near + 1], mc, free_space=False)[0][0]
-    alts = db._alternatives(h, bundle, [h], mc, ICPConfig(max_iterations=12), None)
+    raw_fit = _verify(db.target, bundle, Ts[near : near + 1], mc, free_space=False)[0][0]
+    alts = _alternatives(db, h, bundle, [h], mc, ICPConfig(max_iterations=12), None)
     errs = [pose_error(a.T, T) for a in alts]
     # The short ICP brings the alternative near the truth (how near depends on the BLAS build's
     # rounding: 0.07 deg or 2 deg); the full ICP that follows takes it home.
@@ -508,8 +504,8 @@ def test_free_space_acceptance_allows_for_the_beam_footprint(cygnss_db: PAHDatab
     flip = icp(cloud.points, mc, T @ make_T(Rotation.from_rotvec([math.pi, 0, 0]).as_matrix()),
                sigma=sig, directions=cloud.directions, match_along_rays=True).T_sensor_target
     Ts = np.stack([T, flip])
-    fit, like, fs_ray = db._verify(bundle, Ts, mc)
-    _, _, fs_beam = db._verify(bundle, Ts, mc, footprint=True)
+    fit, like, fs_ray = _verify(db.target, bundle, Ts, mc)
+    _, _, fs_beam = _verify(db.target, bundle, Ts, mc, footprint=True)
     assert fs_ray[0] > 0.03 and fs_beam[0] == 0.0
     assert fs_beam[1] > 0.03  # the half-turn flip still sees through the wing it moved
     # Acceptance is judged over the footprint, the ranking along the centre rays.
@@ -567,17 +563,17 @@ def test_three_scans_in_a_corridor_search_one_scans_worth_and_verify_on_all(
     # it (the final ICP sees the whole pool). Benchmark cases (scans and corridors as `bench
     # registration`): cubesat 128, 195 and cygnss 46, 92 miss with one scan in the corridor;
     # pooled, they and the others land within 5 cm and 2 deg.
-    import perception.estimation.pah as pah_module
+    import perception.estimation.pah.verify as verify_module
 
     db = PAHDatabase.build(load_target(name))
     sizes: list[tuple[int, bool]] = []
-    orig_icp = pah_module.icp
+    orig_icp = verify_module.icp
 
     def icp_spy(points, model, T0, **kw):
         sizes.append((len(points), kw.get("config") is not None))  # config: the short ICP
         return orig_icp(points, model, T0, **kw)
 
-    monkeypatch.setattr(pah_module, "icp", icp_spy)
+    monkeypatch.setattr(verify_module, "icp", icp_spy)
     for case in cases:
         T, cloud, corridor = bench_case_corridor(db.target, case)
         if case in (128, 195, 46, 92):
@@ -608,20 +604,20 @@ def test_screening_polishes_one_start_per_basin(
 ) -> None:
     # Starts in the basin of one already polished (near it or near its result) slide to the same
     # pose: one short ICP each for the truth's basin and for its quarter turn, not four.
-    import perception.estimation.pah as pah_module
+    import perception.estimation.pah.verify as verify_module
 
     db = cubesat_db
     T, cloud = bench_case(db.target, 0)
     mc = prepare_model(db.target)
     bundle = _Scan.build(cloud.points, cloud.sigma, cloud.directions, mc.spacing)
     calls: list[np.ndarray] = []
-    orig_icp = pah_module.icp
+    orig_icp = verify_module.icp
 
     def icp_spy(points, model, T0, **kw):
         calls.append(T0)
         return orig_icp(points, model, T0, **kw)
 
-    monkeypatch.setattr(pah_module, "icp", icp_spy)
+    monkeypatch.setattr(verify_module, "icp", icp_spy)
 
     def nudge(rotvec_deg: list[float], dt: list[float]) -> np.ndarray:
         """T turned about the target origin and moved [m]."""
@@ -694,14 +690,14 @@ def test_polishing_the_leader_out_of_the_corridor_leaves_no_leader(monkeypatch, 
     ``None.free_space_beam`` and stop the episode: glideslope campaign run 29). The path is
     forced: screened hypotheses are left unsettled and never explain the scan, so the leader is
     polished, and from then on the corridor admits nothing."""
-    import perception.estimation.pah as pah_module
+    import perception.estimation.pah.search as search_module
 
     rng = np.random.default_rng(29)
     T = random_pose(rng)
     cloud = scan(load_target("cubesat"), T, rng)
     constraint = PoseConstraint(T[:3, :3], np.radians(20.0), np.radians(15.0), 1.0, 100.0)
     polished = []
-    orig_screen, orig_polish, orig_best = PAHDatabase._screen, PAHDatabase._polish, pah_module._best
+    orig_screen, orig_polish, orig_best = PAHDatabase._screen, PAHDatabase._polish, search_module._best
 
     def screen(self, *args, **kwargs):
         hyps = orig_screen(self, *args, **kwargs)
@@ -716,7 +712,7 @@ def test_polishing_the_leader_out_of_the_corridor_leaves_no_leader(monkeypatch, 
     monkeypatch.setattr(PAHDatabase, "_screen", screen)
     monkeypatch.setattr(PAHDatabase, "_polish", polish)
     monkeypatch.setattr(_Hypothesis, "clean", lambda self, accept, n: False)
-    monkeypatch.setattr(pah_module, "_best", lambda hyps, c: None if polished else orig_best(hyps, c))
+    monkeypatch.setattr(search_module, "_best", lambda hyps, c: None if polished else orig_best(hyps, c))
     res = cubesat_db.localize(cloud.points, rng, constraint=constraint, sigma=cloud.sigma,
                               max_time_s=math.inf)
     assert len(polished) == 1  # the leader was polished, then nothing was admissible

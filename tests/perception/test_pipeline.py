@@ -190,7 +190,7 @@ def test_pah_acquisition_does_not_depend_on_the_wall_clock(monkeypatch: pytest.M
     assert (Mode.SEARCH, Mode.TRACKING) in events
     clock = iter(np.arange(1e6) * 10.0)
     slow = types.SimpleNamespace(perf_counter=lambda: float(next(clock)))
-    monkeypatch.setattr(pah_module, "time", slow)
+    monkeypatch.setattr(pah_module.search, "time", slow)  # the clock PAH's search reads
     busy, busy_events = states()
     assert busy_events == events
     np.testing.assert_array_equal(busy, normal)

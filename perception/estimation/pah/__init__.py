@@ -76,9 +76,6 @@ The package, in the order data flows through it:
 
 from __future__ import annotations
 
-# Not used here: tests/perception/test_pipeline.py sets ``pah.time`` to a fast clock. The clock the
-# search reads is ``perception.estimation.pah.search.time``; patch that one.
-import time  # noqa: F401
 
 from .constraint import PoseConstraint
 from .database import PAHDatabase

@@ -6,8 +6,10 @@ so a controller that is not installed (or not written yet) costs nothing until i
 fails with one clear message.
 
 Names:
-    ``glideslope``: :class:`agents.glideslope.GlideslopeController`.
-    ``lqr``: :class:`agents.lqr.LQRController`.
+    ``glideslope``: :class:`agents.glideslope.GlideslopeController` (with the bearing-mode law of
+        :mod:`agents.bearing_guidance` far out, before acquisition: it flies Rendezvous-v0 from
+        ~500 m on the full pipeline).
+    ``lqr``: :class:`agents.lqr.LQRController` (the same bearing-mode law far out).
     ``sync``: :class:`agents.sync.SyncController` (synchronised approach to a tumbling port).
     ``sb3:<path>``: a saved stable-baselines3 policy (``model.zip`` or its run folder) through
         :func:`agents.policies.load_policy`, deterministic actions.

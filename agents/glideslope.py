@@ -26,6 +26,12 @@ once). The approach resumes once the pose has been healthy for as long as it was
 and after a retreat, ``safety.resume_s``). Before the first healthy pose of an episode (acquisition)
 there is nothing to dead-reckon: a closing range rate is braked along the line of sight (known
 from the bearing) when it is measured, else the chaser coasts.
+
+Far out (a valid range beyond ``bearing.engage_range_m``, 60 m) with no healthy pose - bearing
+mode, search before acquisition, or a pose lost or degraded there - the bearing law of
+:mod:`agents.bearing_guidance` flies instead: it closes on bearing, range and range rate down
+the approach axis at a speed that shrinks with range, holding short of ``bearing.hold_range_m``,
+and hands back to this law at the first healthy pose (``law`` says which flew the last step).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from agents.bearing_guidance import BearingGains, BearingGuidance
 from agents.lqr import dock_frame_in_lvlh, docking_frame_model, port_lever_dock
 from agents.safety import CollisionAvoidance, SafetyGains
 from perception.config import MissionConfig
@@ -59,6 +66,7 @@ class GlideslopeGains:
     kp_att: float = 0.4  # [1/s^2] attitude loop (6-DOF)
     kd_att: float = 1.2  # [1/s]
     safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
+    bearing: BearingGains = field(default_factory=BearingGains)  # no healthy pose, far out
 
 
 class GlideslopeController:
@@ -92,10 +100,17 @@ class GlideslopeController:
             dt, self.dock, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
             model=model, lever=port_lever_dock(cfg) if model is not None else (0.0, 0.0, 0.0),
         )
+        self.bearing = BearingGuidance(
+            cfg, self.g.bearing, model=model,
+            lever=port_lever_dock(cfg) if model is not None else None,
+        )
+        self.law = "pose"  # which law flew the last step: "pose", "bearing" or "safety"
 
     def reset(self) -> None:
-        """Forget the episode (the dead-reckoned port and the avoidance state)."""
+        """Forget the episode (the dead-reckoned port, the avoidance state, the bearing filter)."""
         self.safety.reset()
+        self.bearing.reset()
+        self.law = "pose"
 
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
@@ -109,6 +124,11 @@ class GlideslopeController:
         mode = self.safety.update(
             obs, p + self.dock if valid[3] > 0.5 else None, v if valid[4] > 0.5 else None
         )
+        self.bearing.update(obs)
+        self.law = "safety" if mode != "nominal" else "pose"
+        if mode in ("avoid", "blind") and self.bearing.engaged(obs):
+            self.law = "bearing"  # far out with no healthy pose: close on the bearing and range
+            return self.bearing.accel(obs)
         if mode in ("avoid", "commit"):
             return self.safety.accel(obs)
         if mode == "blind":
@@ -132,11 +152,12 @@ class GlideslopeController:
         a = self.accel_command(obs)
         mass = self._mass(obs)
         thrust = a * mass / self.max_thrust
-        if self.safety.mode in ("nominal", "blind"):
+        if self.safety.mode in ("nominal", "blind") and self.law != "bearing":
             thrust = np.clip(thrust, -1.0, 1.0)
-        else:  # an avoidance keeps its direction at the thrust limit
+        else:  # an avoidance (or the bearing law) keeps its direction at the thrust limit
             thrust = thrust / max(1.0, float(np.max(np.abs(thrust))))
         self.safety.applied(thrust * self.max_thrust / mass)
+        self.bearing.applied(thrust * self.max_thrust / mass)
         if not self.six_dof:
             return thrust.astype(np.float32)
         torque = np.zeros(3)

@@ -38,7 +38,9 @@ lost one off the axis, backs away at once). The approach resumes once the pose h
 for as long as it was lost (at most, and after a retreat, ``safety.resume_s``), the aim point
 restarting from the new estimate. Before the first healthy pose of
 an episode there is nothing to dead-reckon: a closing range rate is braked along the line of sight
-(bearing) when both are valid, else the chaser coasts (:func:`loss_of_track_accel`).
+(bearing) when both are valid, else the chaser coasts (:func:`loss_of_track_accel`). Far out (a
+valid range beyond ``bearing.engage_range_m``) with no healthy pose, the bearing law of
+:mod:`agents.bearing_guidance` flies instead and hands back at the first healthy pose.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ import numpy.typing as npt
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
+from agents.bearing_guidance import BearingGains, BearingGuidance
 from agents.safety import CollisionAvoidance, SafetyGains
 from perception.config import MissionConfig
 from perception.targets import load_target
@@ -80,6 +83,7 @@ class LQRGains:
     commit_range_m: float = 1.0  # [m] no hold inside this distance (a stop there is a collision)
     brake_gain: float = 0.4  # [1/s] loss-of-track braking of a closing range rate (no fix yet)
     safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
+    bearing: BearingGains = field(default_factory=BearingGains)  # no healthy pose, far out
 
 
 def dock_frame_in_lvlh(cfg: MissionConfig) -> FloatArray | None:
@@ -198,12 +202,19 @@ class LQRController:
             model=(self.A, self.B) if self.R is not None else None,
             lever=port_lever_dock(cfg) if self.R is not None else (0.0, 0.0, 0.0),
         )
+        self.bearing = BearingGuidance(
+            cfg, g.bearing, model=(self.A, self.B),
+            lever=port_lever_dock(cfg) if self.R is not None else None,
+        )
+        self.law = "pose"
         self.reset()
 
     def reset(self) -> None:
         """Forget the aim point, the dead-reckoned port and the avoidance state."""
         self.z_aim = float("nan")
         self.safety.reset()
+        self.bearing.reset()
+        self.law = "pose"  # which law flew the last step: "pose", "bearing" or "safety"
 
     def _mass(self, obs: npt.NDArray[np.floating]) -> float:
         return self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
@@ -225,8 +236,13 @@ class LQRController:
         p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
         d = self.safety.d
         mode = self.safety.update(obs, p + d if valid[3] > 0.5 else None, p_dot if valid[4] > 0.5 else None)
+        self.bearing.update(obs)
+        self.law = "safety" if mode != "nominal" else "pose"
         if mode != "nominal":
             self.z_aim = float("nan")  # restart the aim from the next healthy pose
+            if mode in ("avoid", "blind") and self.bearing.engaged(obs):
+                self.law = "bearing"  # far out with no healthy pose: close on bearing and range
+                return self.bearing.accel(obs)
             if mode == "blind":
                 return loss_of_track_accel(obs, g.brake_gain)
             return self.safety.accel(obs)
@@ -262,6 +278,7 @@ class LQRController:
         if self.thrust_frame == "lvlh" and self.R is not None:
             applied = self.R.T @ applied  # back into the docking frame
         self.safety.applied(applied)
+        self.bearing.applied(applied)
         if self.six_dof:
             thrust = np.concatenate([thrust, np.zeros(3)])  # no attitude control: use sync
         return thrust.astype(np.float32)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -41,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from agents.outputs import check_name
 from perception.config import ConfigError, MissionConfig, config_path, load_config
+from tridar_env.registration import bare_id
 
 __all__ = [
     "CampaignConfig",
@@ -48,6 +49,7 @@ __all__ = [
     "RunSpec",
     "bare_id",
     "build_specs",
+    "check_run_identity",
     "env_seed",
     "load_campaign",
     "mission_config",
@@ -247,9 +249,17 @@ class CampaignConfig(BaseModel):
         return d
 
 
-def bare_id(env_id: str) -> str:
-    """``TriDAR/FinalApproach-v0`` from ``tridar_env:TriDAR/FinalApproach-v0`` (or itself)."""
-    return env_id.split(":", 1)[1] if ":" in env_id else env_id
+def check_run_identity(name: str, env_id: str, fail: Callable[[str], None]) -> None:
+    """The checks a campaign and a training run share: ``name`` is a plain folder name and
+    ``env_id`` a registered id; ``fail(message)`` raises the caller's one-line error."""
+    from tridar_env.registration import ENV_IDS
+
+    try:
+        check_name(name)
+    except ValueError as exc:
+        fail(str(exc))
+    if bare_id(env_id) not in ENV_IDS:
+        fail(f"env_id={env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
 
 
 def load_campaign(path: str | Path, **overrides: Any) -> CampaignConfig:
@@ -278,17 +288,11 @@ def validate_campaign(cfg: CampaignConfig, source: str = "campaign") -> None:
         ConfigError: naming the campaign, the field or key, and the offending value.
     """
     from agents.controllers import CONTROLLERS, controller_names
-    from tridar_env.registration import ENV_IDS
 
     def fail(msg: str) -> None:
         raise ConfigError(f"campaign {source}: {msg}")
 
-    try:
-        check_name(cfg.name)
-    except ValueError as exc:
-        fail(str(exc))
-    if bare_id(cfg.env_id) not in ENV_IDS:
-        fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
+    check_run_identity(cfg.name, cfg.env_id, fail)
     if cfg.controller not in CONTROLLERS and ":" not in cfg.controller:
         fail(
             f"controller={cfg.controller!r} is unknown; expected one of "

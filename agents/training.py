@@ -37,8 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from agents.campaign_spec import check_run_identity
 from agents.evaluation import evaluate
-from agents.outputs import atomic_write, check_folder, check_name, claim_folder, lock_folder
+from agents.outputs import atomic_write, check_folder, claim_folder, lock_folder
 from agents.policies import SB3Policy, load_policy, save_stats
 from agents.pretrain import Demonstrations, collect_demonstrations, pretrain_policy
 from agents.training_config import (
@@ -51,7 +52,6 @@ from agents.training_config import (
     PretrainConfig,
     TrainingConfig,
     algo_class,
-    bare_id,
     env_args,
     mission_path,
     policy_kwargs,
@@ -89,17 +89,10 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
     Raises:
         ConfigError: naming the field and the value.
     """
-    from tridar_env.registration import ENV_IDS
-
     def fail(msg: str) -> None:
         raise ConfigError(f"{source}: {msg}")
 
-    try:
-        check_name(cfg.name)
-    except ValueError as exc:
-        fail(str(exc))
-    if bare_id(cfg.env_id) not in ENV_IDS:
-        fail(f"env_id={cfg.env_id!r} is not registered; expected one of {', '.join(ENV_IDS)}")
+    check_run_identity(cfg.name, cfg.env_id, fail)
     if cfg.pretrain is not None and cfg.algo != "ppo":
         fail(f"pretrain is set with algo={cfg.algo!r}; behaviour cloning is implemented for 'ppo'")
     if cfg.mission is not None and not Path(cfg.mission).is_file():

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from perception.config import MissionConfig, config_path
+from tridar_env.registration import bare_id
 
 __all__ = [
     "CHECKPOINT_DIR",
@@ -128,11 +129,6 @@ def algo_class(algo: str) -> Any:
     from stable_baselines3 import PPO, SAC
 
     return {"ppo": PPO, "sac": SAC}[algo]
-
-
-def bare_id(env_id: str) -> str:
-    """The id without a ``module:`` prefix."""
-    return env_id.split(":", 1)[1] if ":" in env_id else env_id
 
 
 def mission_path(env_id: str, mission: str | None) -> Path:

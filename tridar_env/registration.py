@@ -38,6 +38,11 @@ ENV_IDS: dict[str, str] = {
 }
 
 
+def bare_id(env_id: str) -> str:
+    """``TriDAR/FinalApproach-v0`` from ``tridar_env:TriDAR/FinalApproach-v0`` (or itself)."""
+    return env_id.split(":", 1)[1] if ":" in env_id else env_id
+
+
 def mission_source(mission: str | None, config: Any = None) -> tuple[Any, dict[str, Any]]:
     """What an id's entry point loads: ``(config source, overrides)``. A path, mission name or
     ``MissionConfig`` stands on its own; None or an overrides dict goes on the id's mission file."""

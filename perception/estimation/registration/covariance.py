@@ -20,6 +20,7 @@ from perception.estimation.registration.result import (
     RegistrationResult,
 )
 from perception.estimation.registration.step import jacobian_rows
+from perception.estimation.registration.weights import noise_variance
 from perception.geometry import skew
 
 FloatArray = npt.NDArray[np.float64]
@@ -33,7 +34,7 @@ def _residual_variance(
     model_sigma: float = 0.0,
 ) -> FloatArray:
     cos = np.einsum("ij,ij->i", n_sensor, d_sensor)
-    return sig**2 * (cos**2 + floor_fraction**2) + model_sigma**2
+    return noise_variance(sig, cos, floor_fraction, model_sigma)
 
 
 def information_rows(

@@ -29,6 +29,17 @@ target's centre of mass, mission knowledge passed in when the docking frame is c
 * a range rate that is not valid brakes (``v_des = 0`` on the filter's velocity); no bearing or
   range at all: the filter coasts on the chaser's own accelerations and the law brakes on it.
 
+**Far out** (beyond ``far_range_m``, FarRendezvous-v0 from kilometres): the closing speed keeps
+growing with distance, ``v_des = min(v_far_max, v_des(far_range_m) + far_slope * (z - far_range_m))``,
+a forced-motion approach down the axis that keeps the target inside the sensors' fields of view
+(a CW transfer or V-bar hop from 5 km swings 10-25 deg off the axis, out of a body-fixed
+imager's field under the docking attitude law); the CW model's own accelerations at the estimate
+are cancelled (feedforward), so the loops see a double integrator. The measurement sigmas grow
+with range there (``sigma_range_fraction``, ``sigma_rate_fraction``: the coarse range source
+and its differentiated rate), and with the environment's decision schedule (steps that lengthen
+with range, :func:`tridar_env.schedule.decision_frames`) the filter predicts over each step's own
+length, known from the last valid range the controller saw, as the environment knows it.
+
 **Engagement.** The pose-based controllers call :meth:`BearingGuidance.engaged` when they have no
 healthy pose: it is true only with a valid range beyond ``engage_range_m`` (above the final
 approach's start, so the close-in loss-of-track rules of :mod:`agents.safety` keep their say).
@@ -36,6 +47,7 @@ approach's start, so the close-in loss-of-track rules of :mod:`agents.safety` ke
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +56,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from tridar_env.env import observation_slices
+from tridar_env.schedule import decision_frames
 
 _S = observation_slices()
 FloatArray = npt.NDArray[np.float64]
@@ -68,6 +81,11 @@ class BearingGains:
     sigma_bearing_rad: float = 2e-3  # centroid direction error (returns wander over the target)
     sigma_range_rate: float = 0.02  # [m/s]
     accel_noise: float = 2e-4  # [m/s^2/sqrt(Hz)] process noise (CW residuals, centroid drift)
+    far_range_m: float = 600.0  # [m] beyond this: the far-range profile and CW feedforward
+    far_slope: float = 0.001  # [1/s] closing speed gained per metre beyond far_range_m
+    v_far_max: float = 2.5  # [m/s]
+    sigma_range_fraction: float = 0.003  # far out: range sigma >= this * range
+    sigma_rate_fraction: float = 1e-4  # far out: range-rate sigma >= this * range [1/s]
 
 
 def line_of_sight(bearing: npt.ArrayLike) -> FloatArray:
@@ -105,14 +123,22 @@ class BearingGuidance:
         gains: BearingGains | None = None,
         model: tuple[FloatArray, FloatArray] | None = None,
         lever: npt.ArrayLike | None = None,
+        model_for_dt: Callable[[float], tuple[FloatArray, FloatArray]] | None = None,
+        cw: tuple[float, FloatArray] | None = None,
     ) -> None:
         ch = cfg.dynamics.chaser
         self.g = gains or BearingGains()
+        self.env_cfg = cfg.env
         dt = self.dt = float(cfg.env.frame_period_s * cfg.env.frame_skip)
         if model is None:
             model = (np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]]),
                      np.vstack([0.5 * dt**2 * np.eye(3), dt * np.eye(3)]))
         self.A, self.B = (np.asarray(m, dtype=np.float64) for m in model)
+        # Steps that lengthen with range: one model per step length (built on first use).
+        self.model_for_dt = model_for_dt
+        self._models: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
+        # (n, R_lvlh_dock) for the CW feedforward far out (None: no feedforward).
+        self.cw = None if cw is None else (float(cw[0]), np.asarray(cw[1], dtype=np.float64))
         self.lever = np.zeros(3) if lever is None else np.asarray(lever, dtype=np.float64).reshape(3)
         self.dock = np.asarray(ch.dock_position_m, dtype=np.float64)
         self.R_cs = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
@@ -129,6 +155,25 @@ class BearingGuidance:
         self.s = np.zeros(6)
         self.P = np.eye(6)
         self._a_prev = np.zeros(3)
+        self._last_range: float | None = None  # the last valid range seen (decision schedule)
+        self._frames_next = self.env_cfg.frame_skip  # frames of the step the last action flies
+
+    def _step_model(self, frames: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``(A, B, Q)`` over a step of ``frames`` frames."""
+        if self.env_cfg.decision_schedule is None or frames == self.env_cfg.frame_skip:
+            return self.A, self.B, self.Q
+        m = self._models.get(frames)
+        if m is None:
+            dt = self.env_cfg.frame_period_s * frames
+            if self.model_for_dt is not None:
+                A, B = self.model_for_dt(dt)
+            else:
+                A = np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+                B = np.vstack([0.5 * dt**2 * np.eye(3), dt * np.eye(3)])
+            q = self.g.accel_noise**2
+            Q = np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * q, np.eye(3))
+            m = self._models[frames] = (np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64), Q)
+        return m
 
     # ------------------------------------------------------------------ estimate
     def _centroid(self, obs: npt.NDArray[np.floating]) -> tuple[FloatArray, FloatArray]:
@@ -141,15 +186,23 @@ class BearingGuidance:
         bearing, range and range rate (those that are valid)."""
         valid = obs[_S["valid"]]
         if self.has_estimate:
-            self.s = self.A @ self.s + self.B @ self._a_prev
-            self.P = self.A @ self.P @ self.A.T + self.Q
+            A, B, Q = self._step_model(self._frames_next)
+            self.s = A @ self.s + B @ self._a_prev
+            self.P = A @ self.P @ A.T + Q
+        if valid[_RANGE] > 0.5 and self.env_cfg.decision_schedule is not None:
+            self._last_range = float(obs[_S["range"]][0])
+            self._frames_next = decision_frames(self.env_cfg, self._last_range)
         if valid[_BEARING] < 0.5 or valid[_RANGE] < 0.5:
             return
         g = self.g
         c, u = self._centroid(obs)
         rng = float(np.linalg.norm(c))
         across = max(g.sigma_bearing_rad * rng, 0.2)
-        R_pos = across**2 * np.eye(3) + (g.sigma_range_m**2 - across**2) * np.outer(u, u)
+        sigma_range, sigma_rate = g.sigma_range_m, g.sigma_range_rate
+        if rng > g.far_range_m:
+            sigma_range = max(sigma_range, g.sigma_range_fraction * rng)
+            sigma_rate = max(sigma_rate, g.sigma_rate_fraction * rng)
+        R_pos = across**2 * np.eye(3) + (sigma_range**2 - across**2) * np.outer(u, u)
         rate_ok = valid[_RATE] > 0.5
         rr = float(obs[_S["range_rate"]][0])
         if not self.has_estimate:
@@ -159,7 +212,7 @@ class BearingGuidance:
             self.P[:3, :3] = R_pos
             self.P[3:, 3:] = np.eye(3) * (0.3**2 if rate_ok else 1.0)
             if rate_ok:
-                self.P[3:, 3:] += (g.sigma_range_rate**2 - 0.3**2) * np.outer(u, u)
+                self.P[3:, 3:] += (sigma_rate**2 - 0.3**2) * np.outer(u, u)
             self.has_estimate = True
             return
         H = np.zeros((4 if rate_ok else 3, 6))
@@ -171,7 +224,7 @@ class BearingGuidance:
             z = np.append(z, rr)
             Rm = np.zeros((4, 4))
             Rm[:3, :3] = R_pos
-            Rm[3, 3] = g.sigma_range_rate**2
+            Rm[3, 3] = sigma_rate**2
         S = H @ self.P @ H.T + Rm
         K = np.linalg.solve(S, H @ self.P).T
         self.s = self.s + K @ (z - H @ self.s)
@@ -188,6 +241,15 @@ class BearingGuidance:
         return bool(
             self.has_estimate and valid[_RANGE] > 0.5
             and float(obs[_S["range"]][0]) > self.g.engage_range_m
+        )
+
+    def far(self, obs: npt.NDArray[np.floating]) -> bool:
+        """Beyond ``far_range_m`` (an estimate and a valid range): this law flies whatever the
+        pose, since the pose-based laws' speeds are sized for the last few hundred metres."""
+        valid = obs[_S["valid"]]
+        return bool(
+            self.has_estimate and valid[_RANGE] > 0.5
+            and float(obs[_S["range"]][0]) > self.g.far_range_m
         )
 
     # ------------------------------------------------------------------ law
@@ -207,12 +269,31 @@ class BearingGuidance:
         lat = float(np.hypot(p[0], p[1]))
         rate_ok = obs[_S["valid"]][_RATE] > 0.5
         v_des = self.desired_speed(z) if rate_ok else 0.0
+        far = z > g.far_range_m
+        if far and rate_ok:
+            v_des = min(g.v_far_max, self.desired_speed(g.far_range_m) + g.far_slope * (z - g.far_range_m))
         if lat > g.lateral_cone * z + 2.0:
             v_des = 0.0
+        # Over long steps (decision schedule) the speed loops would overshoot: no loop corrects
+        # more than half its error within one step.
+        dt = self.env_cfg.frame_period_s * self._frames_next
+        kv, kd = min(g.kv, 0.5 / dt), min(g.kd_lat, 0.5 / dt)
+        kp = g.kp_lat if kd == g.kd_lat else min(g.kp_lat, 0.25 * kd * kd)
         a = np.empty(3)
-        a[:2] = g.kp_lat * p[:2] + g.kd_lat * p_dot[:2]
-        a[2] = g.kv * (p_dot[2] + v_des)
+        a[:2] = kp * p[:2] + kd * p_dot[:2]
+        a[2] = kv * (p_dot[2] + v_des)
+        if far and self.cw is not None:
+            a -= self.cw_accel()
         return a
+
+    def cw_accel(self) -> FloatArray:
+        """The CW model's natural acceleration of the chaser at the estimate, docking frame
+        [m/s^2]: ``[3 n^2 x + 2 n y', -2 n x', -n^2 z]`` in LVLH."""
+        assert self.cw is not None
+        n, R = self.cw
+        r, v = R @ self.s[:3], R @ self.s[3:]
+        a = np.array([3.0 * n * n * r[0] + 2.0 * n * v[1], -2.0 * n * v[0], -n * n * r[2]])
+        return R.T @ a
 
     def applied(self, a_body: npt.ArrayLike) -> None:
         """Record the body acceleration [m/s^2] the returned action commands (after limits)."""

@@ -11,6 +11,8 @@ Names:
         ~500 m on the full pipeline).
     ``lqr``: :class:`agents.lqr.LQRController` (the same bearing-mode law far out).
     ``sync``: :class:`agents.sync.SyncController` (synchronised approach to a tumbling port).
+    ``fly_around``: :class:`agents.fly_around.FlyAroundController` (undocking and fly-around,
+        FlyAround-v0).
     ``sb3:<path>``: a saved stable-baselines3 policy (``model.zip`` or its run folder) through
         :func:`agents.policies.load_policy`, deterministic actions.
     ``<module>:<Class>``: any importable class taking ``(cfg)``.
@@ -38,6 +40,7 @@ CONTROLLERS: dict[str, str] = {
     "glideslope": "agents.glideslope:GlideslopeController",
     "lqr": "agents.lqr:LQRController",
     "sync": "agents.sync:SyncController",
+    "fly_around": "agents.fly_around:FlyAroundController",
 }
 
 

@@ -103,6 +103,8 @@ class GlideslopeController:
         self.bearing = BearingGuidance(
             cfg, self.g.bearing, model=model,
             lever=port_lever_dock(cfg) if model is not None else None,
+            model_for_dt=lambda step: docking_frame_model(n, step, R),
+            cw=None if R is None else (n, R),
         )
         self.law = "pose"  # which law flew the last step: "pose", "bearing" or "safety"
 
@@ -126,6 +128,9 @@ class GlideslopeController:
         )
         self.bearing.update(obs)
         self.law = "safety" if mode != "nominal" else "pose"
+        if self.bearing.far(obs):
+            self.law = "bearing"  # kilometres out: the far-range profile, pose or not
+            return self.bearing.accel(obs)
         if mode in ("avoid", "blind") and self.bearing.engaged(obs):
             self.law = "bearing"  # far out with no healthy pose: close on the bearing and range
             return self.bearing.accel(obs)

@@ -202,9 +202,13 @@ class LQRController:
             model=(self.A, self.B) if self.R is not None else None,
             lever=port_lever_dock(cfg) if self.R is not None else (0.0, 0.0, 0.0),
         )
+        n = mean_motion(cfg.dynamics.orbit.altitude_m)
+        R = self.R
         self.bearing = BearingGuidance(
             cfg, g.bearing, model=(self.A, self.B),
             lever=port_lever_dock(cfg) if self.R is not None else None,
+            model_for_dt=lambda step: docking_frame_model(n, step, R),
+            cw=None if R is None else (n, R),
         )
         self.law = "pose"
         self.reset()
@@ -238,6 +242,10 @@ class LQRController:
         mode = self.safety.update(obs, p + d if valid[3] > 0.5 else None, p_dot if valid[4] > 0.5 else None)
         self.bearing.update(obs)
         self.law = "safety" if mode != "nominal" else "pose"
+        if self.bearing.far(obs):
+            self.law = "bearing"  # kilometres out: the far-range profile, pose or not
+            self.z_aim = float("nan")
+            return self.bearing.accel(obs)
         if mode != "nominal":
             self.z_aim = float("nan")  # restart the aim from the next healthy pose
             if mode in ("avoid", "blind") and self.bearing.engaged(obs):

@@ -22,7 +22,9 @@ from perception.config import (
 from perception.geometry import fast_cross, fast_matrix_to_quat, fast_quat_to_matrix, invert
 from perception.pipeline.state import Mode, StateVector, Validity
 from perception.targets import TargetModel, load_target
-from tridar_env.observers import Observer, make_observer
+from tridar_env.observers import Observer, TriDARObserver, make_observer
+from tridar_env.fly_around import FlyAroundTask
+from tridar_env.schedule import decision_frames
 from tridar_env.world import ContactState, World
 
 if TYPE_CHECKING:
@@ -52,7 +54,7 @@ OBSERVATION_STRUCTURE: tuple[tuple[str, int, str, str], ...] = (
 OBS_DIM = sum(s for _, s, _, _ in OBSERVATION_STRUCTURE)
 
 #: Termination causes reported in ``info["termination"]``.
-CAUSES = ("docked", "collision", "out_of_bounds", "out_of_fuel", "corridor_exit")
+CAUSES = ("docked", "collision", "out_of_bounds", "out_of_fuel", "corridor_exit", "completed", "keep_out")
 
 
 def observation_slices() -> dict[str, slice]:
@@ -214,6 +216,12 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     ``collision`` (contact outside it, or the hull meets the mesh), ``out_of_bounds``,
     ``out_of_fuel`` or ``corridor_exit``; truncated by ``TimeLimit`` (``max_episode_steps``).
 
+    ## Tasks and step length
+    ``env.task: fly_around`` (FlyAround-v0) replaces docking's termination and rewards with the
+    fly-around's (:mod:`tridar_env.fly_around`: ``completed``, ``keep_out``; ``reward_sweep``...).
+    ``env.decision_schedule`` (FarRendezvous-v0) lengthens a step with the range the agent last
+    saw (:func:`tridar_env.schedule.decision_frames`); ``info["step_dt"]`` is each step's length.
+
     ## Arguments
     ``config``: mission YAML path, bare mission name, ``MissionConfig`` or a dict of overrides;
     ``perception``: ``"tridar"`` | ``"truth"`` | ``"truth+noise"`` (overrides the config);
@@ -262,6 +270,10 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._state: StateVector | None = None
         self._prev_distance = 0.0
         self._prev_lateral = 0.0
+        self._fly_around = FlyAroundTask(self.cfg.env) if self.cfg.env.task == "fly_around" else None
+        self._pre_frame = self.cfg.env.decision_schedule is not None and self.cfg.env.perception == "tridar"
+        self._step_dt = 0.0
+        self._decision_range: float | None = None
         self._renderer: Any = None
         self.history: list[dict[str, Any]] = []
 
@@ -340,7 +352,14 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._ready = True
         self._prev_distance = self._distance()
         self._prev_lateral = self.world.contact().lateral_offset
+        if self._fly_around is not None:
+            self._fly_around.reset(self.world)
+        self._step_dt = 0.0
+        if self.cfg.env.initial.pose_known and isinstance(self.observer, TriDARObserver):
+            # Undocking: the mated relative pose is known; it seeds the first acquisition.
+            self.observer.pipeline.seed_pose(self.world.sensor_truth().T_sensor_target, self.world.t)
         self._state = self.observer.observe(self.world, self.np_random)
+        self._decision_range = float(self._state.range) if self._state.valid.range else None
         self.history = []
         info = self._info(self._state, {}, "", 0)
         self._log(info)
@@ -361,15 +380,27 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         torque = a[3:] * ch.max_torque_nm if a.size == 6 else None
         fuel_before = self.world.mass.propellant_kg
         cause = ""
-        for _ in range(self.cfg.env.frame_skip):
+        frames = decision_frames(self.cfg.env, self._decision_range)
+        for i in range(frames):
             self.world.step(thrust, torque)
+            if self._fly_around is not None:
+                self._fly_around.after_frame(self.world)
             cause = self._termination()
             if cause:
                 break
+            if i == frames - 2 and self._pre_frame:
+                # The sensor's frame before the decision: what it publishes at the decision
+                # (a frame's output is available only after its processing latency).
+                self.observer.observe(self.world, self.np_random)
+        self._step_dt = self.cfg.env.frame_period_s * frames  # the step's planned length [s]
         self._steps += 1
         sv = self.observer.observe(self.world, self.np_random)
         self._state = sv
-        terms = self._reward_terms(cause, fuel_before - self.world.mass.propellant_kg)
+        if sv.valid.range:
+            self._decision_range = float(sv.range)
+        fuel_used = fuel_before - self.world.mass.propellant_kg
+        terms = (self._fly_around.reward_terms(self.world, cause, fuel_used, self._step_dt)
+                 if self._fly_around is not None else self._reward_terms(cause, fuel_used))
         reward = float(sum(terms.values()))
         info = self._info(sv, terms, cause, clipped)
         self._log(info)
@@ -393,6 +424,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         return -hull <= c.axial_distance <= 0.0 and c.lateral_offset <= hull
 
     def _termination(self) -> str:
+        if self._fly_around is not None:
+            return self._fly_around.termination(self.world)
         w, env = self.world, self.cfg.env
         c = w.contact()
         if self._port_contact(c):
@@ -427,7 +460,7 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         lateral = self._prev_lateral - c.lateral_offset
         self._prev_distance, self._prev_lateral = d, c.lateral_offset
         los = np.arctan2(c.lateral_offset, max(c.axial_distance, 1e-3))
-        dt = env.frame_period_s * env.frame_skip
+        dt = self._step_dt
         v_max = env.speed_limit_floor_m_s + env.speed_limit_gain_s * max(c.axial_distance, 0.0)
         e = env.envelope
         v_ref = min(0.5 * (e.axial_speed_min_m_s + e.axial_speed_max_m_s)
@@ -476,7 +509,10 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
             propellant_kg=w.mass.propellant_kg,
             delta_v=w.delta_v,
             n_points=sv.n_points,
+            step_dt=self._step_dt,
         )
+        if self._fly_around is not None:
+            info.update(self._fly_around.info(w))
         # Estimation errors only when there is an estimate (NaN in info would break equality
         # checks such as Gymnasium's determinism test); consumers use .get(key, nan).
         if sv.valid.position:

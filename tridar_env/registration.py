@@ -6,6 +6,8 @@ id                        scenario (``configs/missions/*.yaml``)      max_episod
 TriDAR/FinalApproach-v0   final_approach: ISS-like port, V-bar, 30 m  3000 (10 min)
 TriDAR/TumblingTarget-v0  tumbling_target: cygnss spinning, 60 m      6000 (20 min)
 TriDAR/Rendezvous-v0      rendezvous: from 500 m in bearing mode      20000
+TriDAR/FarRendezvous-v0   far_rendezvous: from 5 km, thermal bearing  20000 (steps lengthen)
+TriDAR/FlyAround-v0       fly_around: undock, circle at 100 m         12000
 ========================  ==========================================  =================
 
 ``gymnasium.make(id, config=path_or_overrides, perception="truth", **overrides)`` passes its
@@ -35,6 +37,8 @@ ENV_IDS: dict[str, str] = {
     "TriDAR/FinalApproach-v0": "final_approach",
     "TriDAR/TumblingTarget-v0": "tumbling_target",
     "TriDAR/Rendezvous-v0": "rendezvous",
+    "TriDAR/FarRendezvous-v0": "far_rendezvous",
+    "TriDAR/FlyAround-v0": "fly_around",
 }
 
 

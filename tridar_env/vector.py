@@ -128,6 +128,10 @@ class TruthVectorEnv(VectorEnv):
             problems.append(f"dynamics.orbit.model={cfg.dynamics.orbit.model!r}; expected 'cw'")
         if cfg.dynamics.chaser.attitude != "ideal":
             problems.append(f"dynamics.chaser.attitude={cfg.dynamics.chaser.attitude!r}; expected 'ideal'")
+        if cfg.env.task != "docking":
+            problems.append(f"env.task={cfg.env.task!r}; expected 'docking'")
+        if cfg.env.decision_schedule is not None:
+            problems.append("env.decision_schedule is set; expected None (fixed-length steps)")
         if problems:
             raise ValueError(
                 "TruthVectorEnv cannot batch this configuration: " + "; ".join(problems)

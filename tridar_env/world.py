@@ -225,6 +225,14 @@ class World:
         ))
         self.T_chaser_dock = _frozen(make_T(None, ch.dock_position_m))
         self.controlled_attitude = ch.attitude == "controlled"
+        self.pointing_attitude = ch.attitude == "pointing"
+        orb = dyn.orbit
+        beta, phase = math.radians(orb.sun_beta_deg), math.radians(orb.sun_phase_deg)
+        self._sun_beta, self._sun_phase0 = beta, phase
+        r_orbit = 6_378_137.0 + orb.altitude_m
+        # The target is in the Earth's cylindrical shadow when the Sun is behind the Earth and the
+        # Sun line passes within an Earth radius of the target: s . x < -sqrt(1 - (R_E / r)^2).
+        self._shadow_cos = -math.sqrt(max(0.0, 1.0 - (6_378_137.0 / r_orbit) ** 2))
         m0 = ch.dry_mass_kg + ch.propellant_kg
         side = 2.0 * ch.hull_radius_m
         self.chaser_inertia = np.eye(3) * m0 * side**2 / 6.0  # uniform cube of the hull's size
@@ -325,7 +333,7 @@ class World:
         if self.target_attitude.mode != "lvlh_hold":
             return
         names = ["R_lvlh_target", "T_lvlh_target", "omega_target_lvlh", "T_lvlh_port"]
-        if not self.controlled_attitude:
+        if not self.controlled_attitude and not self.pointing_attitude:
             names += ["R_lvlh_chaser", "chaser_angular_velocity_body"]
         for name in names:
             getattr(self, name)  # builds and memoises
@@ -352,9 +360,33 @@ class World:
 
         return self._cached("w_t", build)
 
+    def _pointing(self) -> tuple[FloatArray, FloatArray]:
+        """The pointing law's attitude ``R_lvlh_chaser`` and its angular velocity relative to
+        LVLH (LVLH coordinates): body +z at the target's centre of mass, body +x along
+        ``h x z`` (``h`` the orbit normal, +z LVLH), body +y completing the frame."""
+        def build() -> tuple[FloatArray, FloatArray]:
+            r, v = self.state[:3], self.state[3:]
+            rn = math.sqrt(float(r @ r))
+            z = -r / rn
+            z_dot = -(v - (-z) * float(-z @ v)) / rn
+            h = np.array([0.0, 0.0, 1.0])
+            hz = fast_cross(h, z)
+            nx = math.sqrt(float(hz @ hz))
+            if nx < 1e-6:  # looking along the orbit normal: any roll; keep +x radial
+                hz, nx = np.array([1.0, 0.0, 0.0]), 1.0
+            x = hz / nx
+            y = fast_cross(z, x)
+            x_dot = (fast_cross(h, z_dot) - x * float(x @ fast_cross(h, z_dot))) / nx
+            w = fast_cross(z, z_dot) + z * float(x_dot @ y)
+            return np.column_stack([x, y, z]), w
+
+        return self._cached("pointing", build)
+
     @property
     def R_lvlh_chaser(self) -> FloatArray:
         def build() -> FloatArray:
+            if self.pointing_attitude:
+                return self._pointing()[0]
             if not self.controlled_attitude:
                 return self.R_lvlh_target @ self._R_target_dock
             # LVLH turns at +n about z relative to the inertial frame it matched at t = 0.
@@ -365,6 +397,8 @@ class World:
     @property
     def omega_chaser_lvlh(self) -> FloatArray:
         """Chaser angular velocity relative to LVLH, LVLH coordinates [rad/s]."""
+        if self.pointing_attitude:
+            return self._pointing()[1]
         if not self.controlled_attitude:
             return self.omega_target_lvlh
         return self._cached("w_c", lambda: self.R_lvlh_chaser @ self._w_chaser - self._n_lvlh)
@@ -468,7 +502,20 @@ class World:
         """The frame handed to the sensor, with first-order relative motion over the frame."""
         st = self.sensor_truth()
         motion = RelativeMotion(st.T_sensor_target, st.velocity, st.angular_velocity, t_ref=self.t)
-        return TruthScene(st.T_sensor_target, self.t, motion)
+        sun = self.sun_direction_lvlh()
+        sun_t = None if sun is None else self.R_lvlh_target.T @ sun
+        return TruthScene(st.T_sensor_target, self.t, motion, sun_direction_target=sun_t)
+
+    def sun_direction_lvlh(self) -> FloatArray | None:
+        """(3,) unit vector toward the Sun in LVLH at ``t``, or None in the Earth's shadow.
+
+        The Sun is fixed inertially; LVLH turns at the mean motion about its +z, so the Sun's
+        in-plane direction goes round once per orbit (``dynamics.orbit.sun_phase_deg`` at t = 0,
+        ``sun_beta_deg`` above the plane)."""
+        phase = self._sun_phase0 - self.n * self.t
+        cb = math.cos(self._sun_beta)
+        s = np.array([cb * math.cos(phase), cb * math.sin(phase), math.sin(self._sun_beta)])
+        return None if s[0] < self._shadow_cos else s
 
     def contact(self) -> ContactState:
         """Relative docking geometry (truth)."""

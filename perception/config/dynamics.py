@@ -30,6 +30,13 @@ class OrbitConfig(StrictModel):
     inclination_deg: Annotated[Float, Field(ge=0, le=180)] = 51.6
     model: Literal["cw", "nonlinear"] = "cw"
     j2: StrictBool = False
+    sun_beta_deg: Annotated[Float, Field(ge=-90, le=90)] = Field(
+        0.0, description="angle of the Sun above the orbit plane [deg] (toward +z LVLH)"
+    )
+    sun_phase_deg: Annotated[Float, Field(ge=-360, le=360)] = Field(
+        0.0, description="the Sun's in-plane direction at t = 0, from the radial (+x LVLH) toward "
+        "+V-bar (+y) [deg]: 0 is local noon, 180 midnight (in eclipse)"
+    )
 
 
 class TargetAttitudeConfig(StrictModel):
@@ -51,7 +58,11 @@ class ChaserConfig(StrictModel):
     max_thrust_n: Force = 20.0
     max_torque_nm: Force = 2.0
     thrust_frame: Literal["lvlh", "body"] = "body"
-    attitude: Literal["ideal", "controlled"] = "ideal"
+    attitude: Literal["ideal", "pointing", "controlled"] = Field(
+        "ideal", description="ideal: the docking frame held parallel to the port frame; pointing: "
+        "the body +z aimed at the target's centre of mass, body +x along orbit normal x +z (ideal "
+        "attitude control, for a fly-around); controlled: torques from the action"
+    )
     sensor_position_m: Vec3 = Field(
         (0.45, 0.2, -1.5),
         description="TriDAR mount [m], chaser body: set back and aimed so that at contact the "

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, StrictBool, model_validator
 
 from perception.config.types import (
     MAX_COUNT,
@@ -84,14 +84,79 @@ class InitialStateConfig(StrictModel):
     lateral_dispersion_m: NonNegRange = 0.5
     velocity_dispersion_m_s: NonNegSpeed = 0.005
     closing_speed_m_s: NonNegSpeed = 0.0
+    pose_known: StrictBool = Field(
+        False, description="the pipeline starts from the true relative pose at reset (undocking: "
+        "the mated pose is known), as an external seed for its first acquisition"
+    )
+
+
+class DecisionScheduleConfig(StrictModel):
+    """Decision intervals that lengthen with range, so a long approach stays a few thousand steps.
+
+    A step holds the action over ``frame_skip + floor((range - start_m) / step_m)`` frames (at
+    most ``max_frames``), where ``range`` is the range of the state vector the agent just saw
+    (:func:`tridar_env.schedule.decision_frames`; the last valid one while none is valid), so an agent
+    knows each step's length from its own observation. The sensor takes one frame per step.
+    """
+
+    start_m: NonNegRange = Field(300.0, description="range [m] inside which a step is frame_skip frames")
+    step_m: Range = Field(50.0, description="one more frame per step for every this many metres beyond start_m")
+    max_frames: Annotated[Int, Field(ge=1, le=1000)] = 60
+
+
+class FlyAroundConfig(StrictModel):
+    """The fly-around task (``env.task: fly_around``): undock, back out to the standoff, circle the
+    target in the orbital plane and come back to the port axis.
+
+    The swept angle is the chaser's turn about the target's centre of mass in the orbital plane
+    (unwrapped, counted in the direction of ``direction``); the task is complete once it reaches
+    ``sweep_deg`` with the chaser inside the standoff band. Inside ``keep_out_radius_m`` of the
+    centre of mass the episode ends (``keep_out``).
+    """
+
+    standoff_m: Range = Field(100.0, description="radius of the fly-around about the centre of mass [m]")
+    band_m: Size = Field(15.0, description="tolerated distance from the standoff radius [m]")
+    keep_out_radius_m: Range = Field(
+        40.0, description="keep-out sphere about the centre of mass [m] (entered only from the port "
+        "axis while undocking, within keep_out_axis_deg of it)"
+    )
+    keep_out_axis_deg: Annotated[Float, Field(gt=0, le=90)] = Field(
+        15.0, description="half-angle of the departure cone about the port axis inside the keep-out sphere"
+    )
+    sweep_deg: Annotated[Float, Field(gt=0, le=1080)] = 360.0
+    direction: Literal[1, -1] = Field(
+        1, description="+1: counter-clockwise about the orbit normal (+z LVLH), -1: clockwise"
+    )
+
+
+class FlyAroundRewardConfig(StrictModel):
+    """Weights of the fly-around reward terms (``info["reward_<name>"]``): ``sweep`` per radian of
+    swept angle (potential-based), ``band`` per second per metre outside the standoff band,
+    ``time`` per second, ``fuel`` per kg, ``success`` on completion, ``keep_out`` on entering the
+    keep-out sphere, ``exit`` on leaving the bounds."""
+
+    sweep: Weight = 10.0
+    band: Weight = 0.01
+    time: Weight = 0.002
+    fuel: Weight = 10.0
+    success: Weight = 100.0
+    keep_out: Weight = 100.0
+    exit: Weight = 50.0
 
 
 class EnvConfig(StrictModel):
     """Gymnasium environment settings."""
 
     perception: Literal["tridar", "truth", "truth+noise"] = "tridar"
+    task: Literal["docking", "fly_around"] = Field(
+        "docking", description="docking: reach the port inside the capture envelope; fly_around: "
+        "undock and circle the target (env.fly_around)"
+    )
     frame_period_s: FramePeriod = 0.2
     frame_skip: Annotated[Int, Field(ge=1, le=1000)] = 1
+    decision_schedule: DecisionScheduleConfig | None = Field(
+        None, description="decision intervals that lengthen with range (None: frame_skip frames)"
+    )
     max_episode_steps: Annotated[Int, Field(ge=1, le=MAX_COUNT)] = 2000
     max_range_m: Range = 100.0
     corridor_half_angle_deg: Annotated[Float, Field(gt=0, le=180)] | None = None
@@ -121,4 +186,16 @@ class EnvConfig(StrictModel):
     envelope: DockingEnvelopeConfig = DockingEnvelopeConfig()
     reward: RewardConfig = RewardConfig()
     point_cloud_size: Annotated[Int, Field(ge=1, le=1_000_000)] = 1024
+    fly_around: FlyAroundConfig = FlyAroundConfig()
+    fly_around_reward: FlyAroundRewardConfig = FlyAroundRewardConfig()
+
+    @model_validator(mode="after")
+    def _fly_around(self) -> EnvConfig:
+        fa = self.fly_around
+        if self.task == "fly_around" and fa.standoff_m - fa.band_m <= fa.keep_out_radius_m:
+            raise ValueError(
+                f"fly_around.standoff_m={fa.standoff_m} - band_m={fa.band_m} must stay outside "
+                f"keep_out_radius_m={fa.keep_out_radius_m}"
+            )
+        return self
 

@@ -98,6 +98,18 @@ class ScanPlanConfig(StrictModel):
                           "outline refinement adds (pipeline.outline_refinement)")
 
 
+class CoarseRangeConfig(StrictModel):
+    """A coarse range source beyond the LIDAR's reach (a radar or relative GPS, seed 000 section 1):
+    range to the target's near surface along the line of sight to its centre, with Gaussian noise
+    ``sqrt(sigma_m^2 + (sigma_fraction * range)^2)``, fused with the bearings in bearing mode."""
+
+    enabled: StrictBool = False
+    sigma_m: Sigma = 5.0
+    sigma_fraction: Annotated[Float, Field(ge=0, le=1)] = 0.002
+    max_range_m: Range = 100_000.0
+    period_s: Period = Field(1.0, description="one range measurement per this many seconds at most")
+
+
 class PipelineConfig(StrictModel):
     """The mission configuration database of seed 000 section 3.3/5.3: modes, strategies by range."""
 
@@ -181,6 +193,11 @@ class PipelineConfig(StrictModel):
         "outline (samples that returned next to samples that did not)"
     )
     scan_plan: ScanPlanConfig = ScanPlanConfig()
+    thermal_bearing: StrictBool = Field(
+        False, description="bearing mode takes the thermal imager's bearing (mission ``thermal``) "
+        "when the LIDAR has no returns (beyond its link budget): seed 000's tens of kilometres"
+    )
+    coarse_range: CoarseRangeConfig = CoarseRangeConfig()
     fine_only_tracking: StrictBool = Field(
         True, description="on an established track (rates estimated, the last frames accepted) "
         "ICP starts from the filter's prediction in its fine phase, without the coarse phase "

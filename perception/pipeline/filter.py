@@ -403,8 +403,10 @@ class RangeFilter:
         self.initialized = False
         self.n_updates = 0
 
-    def update(self, t: float, range_m: float, sigma_m: float) -> None:
-        """Fuse a range measurement [m] with 1-sigma ``sigma_m`` taken at time ``t``."""
+    def update(self, t: float, range_m: float, sigma_m: float, accel: float = 0.0) -> None:
+        """Fuse a range measurement [m] with 1-sigma ``sigma_m`` taken at time ``t``; ``accel``
+        [m/s^2] is the known range acceleration since the last update (the host's own thrust
+        along the line of sight, from its accelerometer)."""
         r2 = max(float(sigma_m), 1e-4) ** 2
         if not self.initialized:
             self.t, self.x, self.P = float(t), np.array([range_m, 0.0]), np.diag([r2, 1.0])
@@ -414,6 +416,8 @@ class RangeFilter:
         dt = max(float(t) - self.t, 0.0)
         F = np.array([[1.0, dt], [0.0, 1.0]])
         self.x = F @ self.x
+        if accel != 0.0:
+            self.x = self.x + np.array([0.5 * accel * dt * dt, accel * dt])
         self.P = F @ self.P @ F.T + _wn_block(dt, self.q)
         S = self.P[0, 0] + r2
         K = self.P[:, 0] / S

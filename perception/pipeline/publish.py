@@ -47,6 +47,8 @@ class FrameOutput:
     range_m: float = 0.0
     range_sigma: float = 0.0
     range_rate: float | None = None
+    range_valid: bool = True  # False: a bearing without a range (thermal, no coarse range yet)
+    bearing_source: str = ""  # "lidar" | "thermal" for a bearing fix
     filt: PoseFilter | None = None
     n_updates: int = 0
     ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
@@ -102,9 +104,11 @@ class Publisher:
         valid_kw: dict[str, bool] = {}
         kw: dict[str, Any] = {}
         if bearing_ok:
-            valid_kw.update(bearing=True, range=True, range_rate=out.range_rate is not None)
-            kw.update(bearing=out.bearing, range=out.range_m,
-                      range_rate=out.range_rate if out.range_rate is not None else 0.0)
+            ranged = out.range_valid
+            valid_kw.update(bearing=True, range=ranged, range_rate=ranged and out.range_rate is not None)
+            kw.update(bearing=out.bearing, range=out.range_m if ranged else 0.0,
+                      range_rate=out.range_rate if ranged and out.range_rate is not None else 0.0,
+                      bearing_source=out.bearing_source)
         cov = np.eye(12) * INVALID_VARIANCE
         pose_fresh = out.kind == "pose" and out.filt is not None and (t - out.t_meas) <= self.max_pose_age
         if pose_fresh and mode == Mode.TRACKING and out.filt is not None:
@@ -128,6 +132,7 @@ class Publisher:
         rng_m = float(np.linalg.norm(fp))
         kw.update(position=fp, quaternion=fast_matrix_to_quat(fR), range=rng_m,
                   bearing=np.array([np.arctan2(fp[0], fp[2]), np.arctan2(-fp[1], np.hypot(fp[0], fp[2]))]))
+        kw["bearing_source"] = ""
         valid_kw.update(bearing=True, range=True)
         blocks = [slice(0, 3), slice(6, 9)]
         if rates_ok:

@@ -105,6 +105,9 @@ class StateVector:
         latency: [s] between the end of the scan and the state becoming available.
         protection_level: [m] bound on the port position error at the integrity risk (0: no pose).
         alert_limit: [m] the error tolerated at this range (0: no pose).
+        bearing_source: what measured ``bearing`` in bearing and search modes: ``"lidar"`` (the
+            centroid of the returns), ``"thermal"`` (the thermal imager, beyond the LIDAR's
+            reach) or ``""`` (no bearing, or one from the pose).
     """
 
     t: float
@@ -123,6 +126,7 @@ class StateVector:
     latency: float = 0.0
     protection_level: float = 0.0
     alert_limit: float = 0.0
+    bearing_source: str = ""
 
     def __post_init__(self) -> None:
         for name, n in (("position", 3), ("velocity", 3), ("quaternion", 4),
@@ -170,8 +174,11 @@ class TruthScene:
         t: frame start time [s].
         motion: relative motion over the frame (motion during the scan): a
             ``perception.sensing.sensors.RelativeMotion`` or a callable ``t -> (4, 4) T_sensor_target``.
+        sun_direction_target: (3,) unit vector from the target toward the Sun, target body frame,
+            or None when the target is in the Earth's shadow (what the thermal imager needs).
     """
 
     T_sensor_target: FloatArray
     t: float
     motion: Callable[[float], FloatArray] | object | None = None
+    sun_direction_target: FloatArray | None = None

@@ -136,6 +136,11 @@ class TriDAR:
         self.max_pose_age = self.pc.loss_of_track_frames * self.frame_period + self.pc.tracking_latency_s + 1e-9
         self.rng = np.random.default_rng(0)
         self.external_seed: tuple[float, FloatArray] | None = None
+        self.thermal: Any = None
+        if self.pc.thermal_bearing:
+            from perception.sensing.sensors.thermal import ThermalImager
+
+            self.thermal = ThermalImager(config.thermal)
         self.bearing = BearingMode(self)
         self.search = SearchMode(self)
         self.tracking = TrackingMode(self)

@@ -1,0 +1,207 @@
+"""Fly-around controller: undock, back out along the port axis, circle the target at the standoff.
+
+The scripted controller of ``TriDAR/FlyAround-v0`` (seed 000 section 5, STS-131's undocking and
+fly-around of the ISS). It reads only the observation and mission knowledge (the target holds
+LVLH, its design data: the port's place and axis; the chaser's pointing attitude law):
+
+**Estimate.** A healthy pose (position, velocity and attitude valid, not degraded) gives the
+chaser's position and velocity about the target's centre of mass in LVLH: the port's attitude in
+the docking frame turns the docking frame into LVLH (``R_lvlh_dock = R_lvlh_port R_dock_port^T``),
+the port's position and rate in the docking frame, with the gyro's rate relative to LVLH, give
+``r = r_port - R_lvlh_dock (p + dock)`` and ``r' = -R_lvlh_dock (p' + w x (p + dock))``. Without
+a healthy pose the controller dead-reckons ``[r, r']`` with the CW model and its own commanded
+accelerations, and takes its attitude from the pointing law at that estimate.
+
+**Law** (LVLH accelerations; the CW model's own accelerations at the estimate are cancelled, so
+the loops act on a double integrator):
+
+* ``depart``: out along the port axis at a speed that ramps up from ``v_depart_min`` with the
+  distance from the port and down again toward the standoff circle (at most ``v_depart``), a PD
+  keeping the chaser on the axis (inside the keep-out sphere's departure cone);
+* ``circle``: once within ``capture_m`` of the standoff radius, a reference point goes round the
+  circle of radius ``standoff_m`` in the orbital plane at ``v_circle`` (in ``direction``), starting
+  from the chaser's own phase; its centripetal acceleration is fed forward and a PD
+  (``omega_n``, ``zeta``) tracks it. The reference waits while the chaser lags it by more than
+  ``max_lag_m`` or while no healthy pose has come for ``hold_s``, so a lost track holds the chaser
+  on the circle rather than flying it round blind.
+
+The environment ends the episode (``completed``) once the swept angle reaches the configured sweep
+inside the standoff band.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from agents.lqr import saturate
+from perception.config import MissionConfig
+from tridar_env.dynamics import cw_stm, mean_motion
+from tridar_env.env import make_target, observation_slices
+
+_S = observation_slices()
+FloatArray = npt.NDArray[np.float64]
+
+#: ``valid`` flags (observation order).
+_POSITION, _VELOCITY, _ATTITUDE, _DEGRADED = 3, 4, 5, 7
+
+
+@dataclass
+class FlyAroundGains:
+    """Tunables of :class:`FlyAroundController` (SI units)."""
+
+    v_depart: float = 0.5  # [m/s] top departure speed along the port axis
+    v_depart_min: float = 0.05  # [m/s] at the port
+    depart_slope: float = 0.02  # [1/s] departure speed gained per metre from the port / lost toward the circle
+    capture_m: float = 8.0  # [m] within this of the standoff radius the circle starts
+    v_circle: float = 0.4  # [m/s] speed of the reference round the circle
+    max_lag_m: float = 10.0  # [m] the reference waits while the chaser lags it by more
+    omega_n: float = 0.02  # [rad/s] tracking loop's natural frequency
+    zeta: float = 0.9
+    kp_axis: float = 0.004  # [1/s^2] back onto the port axis while departing
+    kd_axis: float = 0.15  # [1/s]
+    hold_s: float = 10.0  # [s] without a healthy pose for this long the reference stops
+
+
+def pointing_attitude(r: FloatArray) -> FloatArray:
+    """``R_lvlh_chaser`` of the pointing law (:mod:`tridar_env.world`) at chaser position ``r``."""
+    z = -r / max(float(np.linalg.norm(r)), 1e-9)
+    hz = np.cross([0.0, 0.0, 1.0], z)
+    nx = float(np.linalg.norm(hz))
+    x = hz / nx if nx > 1e-6 else np.array([1.0, 0.0, 0.0])
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+class FlyAroundController:
+    """Maps an observation to a normalised thrust ``[-1, 1]^3`` in the chaser body frame.
+
+    Args:
+        cfg: the mission config (``env.task: fly_around``, ``dynamics.chaser.attitude: pointing``,
+            the target holding LVLH).
+        gains: tunables.
+
+    Attributes:
+        phase: ``"depart"`` or ``"circle"``.
+        law: which law flew the last step (``"pose"`` on a healthy pose, ``"dead_reckoning"``).
+        r, v: (3,) the estimated chaser position and velocity about the target's centre of mass,
+            LVLH [m, m/s].
+    """
+
+    def __init__(self, cfg: MissionConfig, gains: FlyAroundGains | None = None) -> None:
+        ch, env = cfg.dynamics.chaser, cfg.env
+        if env.task != "fly_around" or ch.attitude != "pointing":
+            raise ValueError(
+                f"FlyAroundController expects env.task='fly_around' (got {env.task!r}) and "
+                f"dynamics.chaser.attitude='pointing' (got {ch.attitude!r})"
+            )
+        if cfg.dynamics.target_attitude.mode != "lvlh_hold" or ch.thrust_frame != "body":
+            raise ValueError("FlyAroundController expects target_attitude.mode='lvlh_hold' and "
+                             "chaser.thrust_frame='body'")
+        self.g = gains or FlyAroundGains()
+        self.cfg = cfg
+        self.fa = env.fly_around
+        self.n = mean_motion(cfg.dynamics.orbit.altitude_m)
+        self.dt = env.frame_period_s * env.frame_skip
+        self.phi, self.gamma = cw_stm(self.n, self.dt)
+        target = make_target(cfg)
+        R_lt = Rotation.from_euler("xyz", cfg.dynamics.target_attitude.initial_rpy_deg, degrees=True).as_matrix()
+        T_tp = target.T_target_port
+        self.R_lvlh_port = R_lt @ T_tp[:3, :3]
+        self.r_port = R_lt @ T_tp[:3, 3]
+        self.axis = self.R_lvlh_port[:, 2]
+        self.dock = np.asarray(ch.dock_position_m, dtype=np.float64)
+        self.dry, self.prop0, self.max_thrust = ch.dry_mass_kg, ch.propellant_kg, ch.max_thrust_n
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the episode."""
+        self.phase = "depart"
+        self.law = "pose"
+        self.has_estimate = False
+        self.r = np.zeros(3)
+        self.v = np.zeros(3)
+        self.theta_ref = 0.0
+        self.blind_s = 0.0
+        self._a_prev = np.zeros(3)
+
+    # ------------------------------------------------------------------ estimate
+    def _from_pose(self, obs: npt.NDArray[np.floating]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        q = obs[_S["q_dock_port"]].astype(np.float64)
+        R_dp = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+        R_ld = self.R_lvlh_port @ R_dp.T
+        p = obs[_S["port_position_dock"]].astype(np.float64) + self.dock
+        p_dot = obs[_S["port_velocity_dock"]].astype(np.float64)
+        w = obs[_S["chaser_rate_body"]].astype(np.float64) - R_ld.T @ np.array([0.0, 0.0, self.n])
+        r = self.r_port - R_ld @ p
+        v = -R_ld @ (p_dot + np.cross(w, p))
+        return r, v, R_ld
+
+    def update(self, obs: npt.NDArray[np.floating]) -> bool:
+        """Take this observation (or dead-reckon); True on a healthy pose."""
+        valid = obs[_S["valid"]]
+        healthy = (valid[_POSITION] > 0.5 and valid[_VELOCITY] > 0.5 and valid[_ATTITUDE] > 0.5
+                   and valid[_DEGRADED] < 0.5)
+        if self.has_estimate:
+            s = self.phi @ np.concatenate([self.r, self.v]) + self.gamma @ self._a_prev
+            self.r, self.v = s[:3], s[3:]
+        if healthy:
+            self.r, self.v, _ = self._from_pose(obs)
+            self.has_estimate = True
+            self.blind_s = 0.0
+        else:
+            self.blind_s += self.dt
+        return healthy
+
+    # ------------------------------------------------------------------ law
+    def cw_accel(self, r: FloatArray, v: FloatArray) -> FloatArray:
+        """The CW model's natural acceleration at ``(r, v)``, LVLH [m/s^2]."""
+        n = self.n
+        return np.array([3.0 * n * n * r[0] + 2.0 * n * v[1], -2.0 * n * v[0], -n * n * r[2]])
+
+    def accel_lvlh(self) -> FloatArray:
+        """The law's LVLH acceleration [m/s^2] at the current estimate."""
+        g, fa = self.g, self.fa
+        r, v = self.r, self.v
+        rn = float(np.linalg.norm(r))
+        if self.phase == "depart" and abs(rn - fa.standoff_m) <= g.capture_m:
+            self.phase = "circle"
+            self.theta_ref = math.atan2(r[1], r[0])
+        if self.phase == "depart":
+            d = r - self.r_port
+            along = float(d @ self.axis)
+            lateral = d - along * self.axis
+            speed = min(g.v_depart, g.v_depart_min + g.depart_slope * max(along, 0.0),
+                        g.v_depart_min + g.depart_slope * max(fa.standoff_m - rn, 0.0))
+            v_along = float(v @ self.axis)
+            kv = 2.0 * g.zeta * g.omega_n
+            a = kv * (speed - v_along) * self.axis
+            a += -g.kp_axis * lateral - g.kd_axis * (v - v_along * self.axis)
+        else:
+            w = fa.direction * g.v_circle / fa.standoff_m
+            ref = fa.standoff_m * np.array([math.cos(self.theta_ref), math.sin(self.theta_ref), 0.0])
+            lag = float(np.linalg.norm(ref - r))
+            if lag <= g.max_lag_m and self.blind_s <= g.hold_s:
+                self.theta_ref += w * self.dt
+                ref = fa.standoff_m * np.array([math.cos(self.theta_ref), math.sin(self.theta_ref), 0.0])
+            v_ref = np.cross([0.0, 0.0, w], ref) if self.blind_s <= g.hold_s else np.zeros(3)
+            a_ref = np.cross([0.0, 0.0, w], v_ref)
+            kp, kd = g.omega_n**2, 2.0 * g.zeta * g.omega_n
+            a = a_ref + kp * (ref - r) + kd * (v_ref - v)
+        return a - self.cw_accel(r, v)
+
+    def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
+        healthy = self.update(obs)
+        self.law = "pose" if healthy else "dead_reckoning"
+        if not self.has_estimate:
+            self._a_prev = np.zeros(3)
+            return np.zeros(3, dtype=np.float32)
+        a = self.accel_lvlh()
+        R_ld = self._from_pose(obs)[2] if healthy else pointing_attitude(self.r)
+        mass = self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
+        thrust = saturate(R_ld.T @ a * mass / self.max_thrust)
+        self._a_prev = R_ld @ thrust * self.max_thrust / mass
+        return thrust.astype(np.float32)

@@ -341,9 +341,9 @@ def _run_missing(
                 _write_part(parts, row)
                 ran.append(int(row["index"]))
                 if bar is not None:
-                    docked += row["outcome"] == "docked"
+                    docked += bool(row.get("success", row["outcome"] == "docked"))
                     bar.update(1)
-                    bar.set_postfix(docked=f"{docked}/{len(ran)}", refresh=False)
+                    bar.set_postfix(succeeded=f"{docked}/{len(ran)}", refresh=False)
                 if on_result is not None:
                     on_result(row)
     finally:

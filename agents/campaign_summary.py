@@ -36,7 +36,9 @@ def summarize(df: Any) -> dict[str, Any]:
 
     df = pd.DataFrame(df) if not isinstance(df, pd.DataFrame) else df
     n = len(df)
-    k = int(df["docked"].sum()) if n else 0
+    docked = int(df["docked"].sum()) if n else 0
+    # Success: docked, or a fly-around completed (rows written before "success" existed: docked).
+    k = int(df["success"].fillna(df["docked"]).astype(bool).sum()) if n and "success" in df else docked
     lo, hi = wilson_interval(k, n)
     errored = (df["outcome"] == "error") if n and "outcome" in df else None
     causes = df.loc[~errored, "cause"].value_counts().to_dict() if errored is not None else {}
@@ -54,7 +56,8 @@ def summarize(df: Any) -> dict[str, Any]:
     contact = df["cause"].isin(["docked", "collision"]) if n else None
     return {
         "runs": n,
-        "docked": k,
+        "docked": docked,
+        "succeeded": k,
         "success_rate": k / n if n else float("nan"),
         "wilson95_low": lo,
         "wilson95_high": hi,
@@ -73,6 +76,11 @@ def summarize(df: Any) -> dict[str, Any]:
         "track_losses_mean": stat("track_losses", np.mean),
         "symmetry_switches_total": stat("symmetry_switches", np.sum),
         "sim_time_median_s": stat("sim_time_s", med),
+        "pose_fraction_mean": stat("pose_fraction", np.mean),
+        "pose_fraction_min": stat("pose_fraction", np.min),
+        "hmi_steps_total": stat("hmi_steps", np.sum),
+        "restarts_total": stat("restarts", np.sum),
+        "restarts_reacquired_total": stat("restarts_reacquired", np.sum),
     }
 
 
@@ -85,6 +93,7 @@ def format_summary(summary: dict[str, Any], title: str | None = None) -> str:
     rows = [
         ("runs", s["runs"]),
         ("docked", s["docked"]),
+        ("succeeded (docked or fly-around completed)", s.get("succeeded", s["docked"])),
         ("success rate", f"{s['success_rate']:.1%}" if s["runs"] else "-"),
         ("Wilson 95% interval", f"[{s['wilson95_low']:.1%}, {s['wilson95_high']:.1%}]"),
         ("causes", causes),
@@ -100,6 +109,11 @@ def format_summary(summary: dict[str, Any], title: str | None = None) -> str:
         ("losses of track per run, mean", f"{s['track_losses_mean']:.3g}"),
         ("switches to a near-symmetric twin, total", f"{s['symmetry_switches_total']:.0f}"),
         ("sim time, median [s]", f"{s['sim_time_median_s']:.4g}"),
+        ("pose available, mean / worst run", (f"{s.get('pose_fraction_mean', np.nan):.2%} / "
+                                              f"{s.get('pose_fraction_min', np.nan):.2%}")),
+        ("valid-but-wrong steps (error > PL), total", f"{s.get('hmi_steps_total', np.nan):.0f}"),
+        ("planned restarts / reacquired, total", (f"{s.get('restarts_total', np.nan):.0f} / "
+                                                 f"{s.get('restarts_reacquired_total', np.nan):.0f}")),
     ]
     table = format_table([{"metric": m, "value": v} for m, v in rows])
     return f"{title}\n{table}" if title else table

@@ -16,6 +16,9 @@ import numpy.typing as npt
 
 Policy = Callable[[npt.NDArray[np.float32]], npt.ArrayLike]
 
+#: Termination causes that count as success (docking, or a fly-around completed).
+SUCCESS_CAUSES = ("docked", "completed")
+
 #: Columns of the per-step log.
 LOG_COLUMNS = (
     "t", "mode", "range_true", "x_lvlh", "y_lvlh", "z_lvlh", "vx_lvlh", "vy_lvlh", "vz_lvlh",
@@ -40,6 +43,12 @@ class EpisodeResult:
         acquisitions: number of search -> tracking transitions.
         track_losses: the TriDAR's declared losses of track (0 without the pipeline).
         symmetry_switches: tracks the ambiguity monitor moved to a near-symmetric twin.
+        pose_fraction: fraction of steps whose state vector carries a pose (position and
+            attitude valid), degraded or not: the tracking availability.
+        hmi_steps: steps whose pose is valid and not degraded but whose docking-port error
+            exceeds the published protection level (hazardously misleading).
+        restarts: planned restarts of the pipeline; ``restarts_reacquired``: those followed by a
+            pose again before the episode ended.
         log: per-step columns (:data:`LOG_COLUMNS`) when ``keep_log``.
     """
 
@@ -59,11 +68,20 @@ class EpisodeResult:
     acquisitions: int
     track_losses: int = 0
     symmetry_switches: int = 0
+    pose_fraction: float = float("nan")
+    hmi_steps: int = 0
+    restarts: int = 0
+    restarts_reacquired: int = 0
     log: dict[str, list[Any]] = field(default_factory=dict, repr=False)
 
     @property
     def docked(self) -> bool:
         return self.outcome == "docked"
+
+    @property
+    def success(self) -> bool:
+        """The task's goal reached: docked, or a fly-around completed."""
+        return self.outcome in SUCCESS_CAUSES
 
     def row(self) -> dict[str, Any]:
         """A flat dict for tables and Parquet (no per-step log)."""
@@ -113,7 +131,11 @@ def run_episode(
     pos_err: list[float] = []
     att_err: list[float] = []
     modes: dict[str, float] = {}
-    dt = float(env.unwrapped.cfg.env.frame_period_s * env.unwrapped.cfg.env.frame_skip)
+    port = np.append(np.asarray(env.unwrapped.target.T_target_port[:3, 3], dtype=np.float64), 1.0)
+    stats_of = getattr(getattr(env.unwrapped, "observer", None), "pipeline", None)
+    pose_steps = hmi = reacquired = 0
+    restarts_seen = 0
+    awaiting_pose = False
     acquisitions = 0
     prev_mode = info["mode"]
     total = 0.0
@@ -125,7 +147,18 @@ def run_episode(
         steps += 1
         total += float(reward)
         mode = info["mode"]
-        modes[mode] = modes.get(mode, 0.0) + dt
+        modes[mode] = modes.get(mode, 0.0) + float(info.get("step_dt", 0.0))
+        sv = env.unwrapped.state_vector
+        n_restarts = int(getattr(getattr(stats_of, "stats", None), "restarts", 0))
+        if n_restarts > restarts_seen:
+            restarts_seen, awaiting_pose = n_restarts, True
+        if sv is not None and sv.valid.position and sv.valid.attitude:
+            pose_steps += 1
+            if awaiting_pose:
+                reacquired, awaiting_pose = reacquired + 1, False
+            if not sv.valid.degraded:
+                err = sv.T_sensor_target @ port - info["truth_T_sensor_target"] @ port
+                hmi += bool(np.linalg.norm(err[:3]) > sv.protection_level)
         if mode == "tracking" and prev_mode != "tracking":
             acquisitions += 1
         prev_mode = mode
@@ -162,6 +195,8 @@ def run_episode(
         time_in_mode_s=modes, acquisitions=acquisitions,
         track_losses=int(getattr(stats, "losses", 0)),
         symmetry_switches=int(getattr(stats, "symmetry_switches", 0)),
+        pose_fraction=pose_steps / steps if steps else float("nan"),
+        hmi_steps=hmi, restarts=restarts_seen, restarts_reacquired=reacquired,
         log=log if keep_log else {},
     )
 

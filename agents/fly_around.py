@@ -58,7 +58,7 @@ class FlyAroundGains:
     v_depart_min: float = 0.05  # [m/s] at the port
     depart_slope: float = 0.02  # [1/s] departure speed gained per metre from the port / lost toward the circle
     capture_m: float = 8.0  # [m] within this of the standoff radius the circle starts
-    v_circle: float = 0.4  # [m/s] speed of the reference round the circle
+    v_circle: float = 0.6  # [m/s] speed of the reference round the circle
     max_lag_m: float = 10.0  # [m] the reference waits while the chaser lags it by more
     omega_n: float = 0.02  # [rad/s] tracking loop's natural frequency
     zeta: float = 0.9

@@ -64,15 +64,19 @@ def episode_row(result: Any) -> dict[str, Any]:
     """A results row from an :class:`agents.episode.EpisodeResult` (without index and traces).
 
     ``outcome`` is ``docked`` or ``failed``; ``cause`` is the termination cause (``docked``,
-    ``collision``, ``out_of_bounds``, ``out_of_fuel``, ``corridor_exit``, ``timeout``).
+    ``collision``, ``out_of_bounds``, ``out_of_fuel``, ``corridor_exit``, ``timeout``; for a
+    fly-around ``completed`` or ``keep_out``); ``success`` is docked or completed.
     """
     r = result.row()
     env_seed_ = r.pop("seed")
     cause = r.pop("outcome")
+    from agents.episode import SUCCESS_CAUSES
+
     return {
         "outcome": "docked" if cause == "docked" else "failed",
         "cause": cause,
         "docked": cause == "docked",
+        "success": cause in SUCCESS_CAUSES,
         "env_seed": int(env_seed_),
         **r,
     }
@@ -125,7 +129,7 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001  (a crashed run is a result too; the campaign goes on)
         row = {
             **head, "outcome": "error", "cause": f"{type(exc).__name__}: {exc}"[:500],
-            "docked": False, "trace_range_m": [], "trace_pos_err_m": [], "trace_att_err_deg": [],
+            "docked": False, "success": False, "trace_range_m": [], "trace_pos_err_m": [], "trace_att_err_deg": [],
         }
     row.update(_disp_columns(spec.dispersed))
     row["wall_time_s"] = time.perf_counter() - t0

@@ -74,6 +74,15 @@ class IntegrityConfig(StrictModel):
         0.05, description="a twin whose PAH score is within this of the tracked pose's, or "
         "better, makes the pose ambiguous"
     )
+    slide_check_period_s: Period | None = Field(
+        None, description="slide monitor (perception.pipeline.slides): every this many seconds of "
+        "tracking (and on each new track's first frames), ICP from the pose pushed both ways along "
+        "its least-constrained direction; what ICP does not bring back is added to the "
+        "registrations' covariance along it (None: off)"
+    )
+    slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
+        0.001, description="slide probe's push: max(3 sigma, this * range) [m]"
+    )
 
 
 class ScanPlanConfig(StrictModel):

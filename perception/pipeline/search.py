@@ -127,6 +127,9 @@ class SearchMode:
         """Start the track on ``res``: the filter, the track's bookkeeping, the twin monitor, and
         tracking mode; returns the frame's output (the pose, with ``out``'s bearing fix)."""
         tri = self.tri
+        # The slide monitor probes a new track's first registrations (this one included).
+        tri.slides.start()
+        res = tri.slides.apply(cloud.points, cloud, res, t_ref, tri.logic.icp_config_for(cloud.subsystem), 0)
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
         if from_track is not None:
             tri.stats.reacquired_from_track += 1

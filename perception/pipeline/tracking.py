@@ -156,6 +156,7 @@ class TrackingMode:
                   config=icp_cfg, coarse=not settled)
         self.frame_pattern = None if isinstance(scene, PointCloud) else (pattern, t)
         res = self.outline_refine(res, pts, cloud)
+        res = tri.slides.apply(pts, cloud, res, t_ref, icp_cfg, tri.n_updates)
         tri.last_result = res
         tri.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), tri.pc.measurement_floor_m)

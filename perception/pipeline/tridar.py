@@ -41,6 +41,7 @@ from perception.pipeline.publish import Publisher
 from perception.pipeline.search import SearchMode
 from perception.pipeline.state import Mode, StateVector, TruthScene
 from perception.pipeline.tracking import TrackingMode, deskew
+from perception.pipeline.slides import SlideMonitor
 from perception.pipeline.twins import TwinMonitor
 from perception.sensing.pointcloud import PointCloud
 from perception.sensing.sensors.tridar import TriDARSensor
@@ -145,6 +146,7 @@ class TriDAR:
         self.search = SearchMode(self)
         self.tracking = TrackingMode(self)
         self.twins = TwinMonitor(self)
+        self.slides = SlideMonitor(self)
         self.publisher = Publisher(self.pc, self.target.T_target_port[:3, 3], self.max_pose_age)
         self._handlers = {Mode.BEARING: self.bearing, Mode.SEARCH: self.search, Mode.TRACKING: self.tracking}
         self.reset(self.rng)
@@ -169,7 +171,7 @@ class TriDAR:
         self.last_pose_t = -np.inf
         self.n_updates = 0
         self.lost_track: PoseFilter | None = None
-        for part in (*self._handlers.values(), self.twins, self.publisher):
+        for part in (*self._handlers.values(), self.twins, self.slides, self.publisher):
             part.reset()
         if self.planner is not None:
             self.planner.reset()

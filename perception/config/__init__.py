@@ -65,6 +65,7 @@ from perception.config.sensor import (
     PointingConfig,
     ScanConfig,
     SensorConfig,
+    ThermalImagerConfig,
     TOFConfig,
     TriangulationConfig,
 )
@@ -104,6 +105,7 @@ __all__ = [
     "TOFConfig",
     "TargetAttitudeConfig",
     "TargetConfig",
+    "ThermalImagerConfig",
     "TriangulationConfig",
     "apply_overrides",
     "config_path",

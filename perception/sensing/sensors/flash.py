@@ -14,15 +14,19 @@ intensity (reflectivity * cos(incidence)); the seed's simulator has no link budg
 
 Culling: a 250,000-pixel frame of a target 20-60 m away has a few thousand rays that can hit;
 the others would cost most of the cast for nothing. :meth:`FlashLidar.rays_to_cast` keeps the
-pixels inside the image rectangle of the target's bounding box (padded by :data:`CULL_PAD_M`,
+pixels inside the image outline of the target's bounding box (padded by :data:`CULL_PAD_M`,
 clipped at the depth nearer than which any return is under ``min_range_m``), from the pose the
-frame is captured at; a pixel's ray direction has ``x/z = tan(az)`` (its column) and
-``y/z = tan(down)`` (its row), so that rectangle is a block of rows times a block of columns.
-Only those rays go to Embree, and the frame is bitwise the frame of the full cast: a ray left out
+frame is captured at. That outline is the convex hull of the box's projected corners in the
+plane ``z = 1``, where a pixel's ray sits at ``x/z = tan(az)`` (its column) and
+``y/z = tan(down)`` (its row): per row, the hull's chord is a run of columns. Only those rays go to Embree, and the frame is bitwise the frame of the full cast: a ray left out
 would have missed (or returned from outside the range window), each cast ray gets the very
-float32 direction the full cast gives it (the rotation is computed for the whole grid and then
-gathered: OpenBLAS's Haswell/Zen sgemm rounds a row differently with the batch it is in), and
-the range errors are drawn for the same valid pixels in the same order.
+float32 direction the full cast gives it, and the range errors are drawn for the same valid
+pixels in the same order. The directions: the same float32 matrix product on fewer rows gives
+each row the same bits (OpenBLAS's sgemm, checked on every core type it ships, Haswell to
+SapphireRapids, and in the tests), except a single row, which numpy hands to sgemv and the
+Haswell and Zen kernels round differently: a lone ray is rotated as a pair. (Rotating the whole
+grid and gathering would not lean on that, but costs a 250,000-row product whose two OpenBLAS
+threads stall for tens of milliseconds on a busy machine.)
 """
 
 from __future__ import annotations
@@ -116,10 +120,10 @@ class FlashLidar:
             T_sensor_target: (4, 4) target pose in the sensor frame.
 
         Returns:
-            (K,) row-major pixel indices, increasing (a block of rows times a block of columns;
-            empty when the target is behind the sensor, outside the field of view or beyond
-            ``max_range_m``), or None for every pixel (the block is the whole image, or the box
-            crosses the sensor's image plane and ``min_range_m`` is 0).
+            (K,) row-major pixel indices, increasing (per row a run of columns; empty when the
+            target is behind the sensor, outside the field of view or beyond ``max_range_m``), or
+            None for every pixel (all of them can return, or the box crosses the sensor's image
+            plane and ``min_range_m`` is 0).
         """
         return self._rays_to_cast(target, check_rigid(T_sensor_target, "T_sensor_target"))
 
@@ -152,9 +156,19 @@ class FlashLidar:
         r0, r1 = np.searchsorted(self._tan_down, [v.min() - _CULL_PAD_TAN, v.max() + _CULL_PAD_TAN])
         if c0 >= c1 or r0 >= r1:
             return empty
-        if c0 == 0 and r0 == 0 and c1 == c.cols and r1 == c.rows:
+        # Each row's columns: the chord of the outline (the convex hull of the projected corners)
+        # at the row's height, clamped into the outline's height for the rows of the padding.
+        rows = np.arange(r0, r1)
+        lo_u, hi_u = _hull_chords(_convex_hull(u, v), self._tan_down[rows])
+        cl = np.searchsorted(self._tan_az, lo_u - _CULL_PAD_TAN)
+        ch = np.maximum(np.searchsorted(self._tan_az, hi_u + _CULL_PAD_TAN, side="right"), cl)
+        n = ch - cl
+        total = int(n.sum())
+        if total == c.rows * c.cols:
             return None
-        return (np.arange(r0, r1)[:, None] * c.cols + np.arange(c0, c1)).ravel()
+        # row-major indices of every row's run of columns, increasing
+        starts = rows * c.cols + cl - (np.cumsum(n) - n)
+        return np.repeat(starts, n) + np.arange(total)
 
     def _cast(
         self, target: TargetModel, T: FloatArray, rays: IndexArray | None
@@ -166,7 +180,9 @@ class FlashLidar:
         if rays.size == 0:
             return rays, rays, np.zeros(0), np.zeros(0)
         R, p = T[:3, :3], T[:3, 3]
-        d_t = (self._dirs32 @ R.astype(np.float32))[rays]  # the full cast's rows, see above
+        # The full cast's float32 rows (module docstring): one row goes through sgemm as a pair.
+        pick = rays if rays.size > 1 else np.repeat(rays, 2)
+        d_t = (self._dirs32[pick] @ R.astype(np.float32))[: rays.size]
         o_t = np.broadcast_to((-(R.T @ p)).astype(np.float32), d_t.shape)
         first = np.asarray(target.ray.intersects_first(o_t, d_t), dtype=np.int64)
         local = np.flatnonzero(first >= 0)
@@ -265,3 +281,41 @@ def _padded_bounds(target: TargetModel) -> tuple[FloatArray, FloatArray]:
         return b[0] - CULL_PAD_M, b[1] + CULL_PAD_M
 
     return target.cached(("flash_cull_bounds", CULL_PAD_M), build)  # type: ignore[no-any-return]
+
+
+def _convex_hull(u: FloatArray, v: FloatArray) -> FloatArray:
+    """(H, 2) counter-clockwise convex hull of a few points (Andrew's monotone chain)."""
+    pts = sorted(set(zip(u.tolist(), v.tolist())))
+    if len(pts) < 3:
+        return np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+
+    def half(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        out: list[tuple[float, float]] = []
+        for q in points:
+            while (
+                len(out) >= 2
+                and (
+                    (out[-1][0] - out[-2][0]) * (q[1] - out[-2][1])
+                    - (out[-1][1] - out[-2][1]) * (q[0] - out[-2][0])
+                )
+                <= 0
+            ):
+                out.pop()
+            out.append(q)
+        return out[:-1]
+
+    return np.asarray(half(pts) + half(pts[::-1]), dtype=np.float64)
+
+
+def _hull_chords(hull: FloatArray, heights: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Lowest and highest ``u`` of the convex polygon ``hull`` (H, 2) at each height ``v`` (R,),
+    heights outside the polygon's taken at its top or bottom."""
+    v = np.clip(heights, hull[:, 1].min(), hull[:, 1].max())[:, None]
+    a, b = hull, np.roll(hull, -1, axis=0)
+    dv = b[:, 1] - a[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (v - a[:, 1]) / dv  # (R, H); rounding is monotonic: in [0, 1] on a crossing edge
+        u = np.where((t >= 0.0) & (t <= 1.0), a[:, 0] + t * (b[:, 0] - a[:, 0]), np.nan)
+    at_vertex = np.where(v == a[:, 1], a[:, 0], np.nan)  # horizontal edges, single points
+    u = np.concatenate([u, at_vertex], axis=1)
+    return np.nanmin(u, axis=1), np.nanmax(u, axis=1)

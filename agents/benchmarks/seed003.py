@@ -1,8 +1,5 @@
 """Seed 003 experiments 1 and 2: the line-roll tracker against plain ICP and our point-to-plane ICP.
 
-Long module: its tracker classes (~240 lines) wait for issue 20, which moves them into
-perception; a sibling file would be listed by ``tridar-env bench`` as a benchmark of its own.
-
 Zhao, Xu and Bo (Sensors 2018) section 3: a CYGNSS-like target (3.55 x 1.10 x 0.47 m) seen by a
 500 x 500 pixel, 20 x 20 deg flash LiDAR with a uniform +-10 mm range error, 51 frames from 60 m to
 10 m (1 m per frame) while the target rolls from 125 to -125 deg (5 deg per frame). Experiment 2
@@ -10,39 +7,41 @@ adds a pitch from 10 to 0 deg and a lateral offset y from 10 to 0 m (0.2 per fra
 written in the seed's frames (X toward the target, Y right, Z down; roll about X) and converted
 with :func:`perception.estimation.linetrack.T_from_seed_pose`; errors are reported back in those frames.
 
-Trackers, each initialised on frame 1 from truth plus a small random error (the seed uses its own
-global method there) and then run frame to frame from its previous estimate:
+Trackers: the public flash trackers of :mod:`perception.estimation.flashtrack` (one row per
+:data:`~perception.estimation.flashtrack.FLASH_TRACKER_KINDS` name, built by
+:func:`~perception.estimation.flashtrack.make_flash_tracker`; their docstrings say how each
+works), each initialised on frame 1 from truth plus a small random error (the seed uses its own
+global method there) and then run frame to frame from its own prediction:
 
-- ``ICP``: point-to-point ICP on the full cloud (the seed's baseline), seed ICP settings;
-- ``Proposed``: :class:`perception.estimation.linetrack.LineRollTracker` (line roll prior, adaptive voxel
-  grid, point-to-point ICP);
-- ``P2Plane``: our default ICP (point-to-plane, :class:`~perception.config.ICPConfig` defaults) on
-  a uniform random subset of the flash cloud (``--plane-points``, TriDAR-like sparse sensing);
-- ``Lines+P2Plane`` (extra row): the seed tracker's roll prior and voxel grid with our
-  point-to-plane ICP (its gate widened to 2 m) in place of point-to-point;
-- ``P2Plane+CV+rays`` (extra row): our ICP as the tumbling-target mission runs it on this target —
-  each point matched to the face its measured ray crosses (``match_along_rays``) — from a
-  constant-velocity prediction (the last frame-to-frame motion repeated, what the pipeline's
-  filter supplies) on the same uniform subset as ``P2Plane``;
-- ``P2Plane+CV+outline`` (extra row): ``P2Plane+CV+rays``, then
-  :func:`perception.estimation.silhouette.refine_pose`: one Gauss-Newton on the surface rows of the same
-  subset and on the flash frame's *outline* (every valid pixel next to an invalid one: the model's
-  outline, found by casting rays along the pair, must cross between them). The CYGNSS bus and
-  wings are plates seen nearly face-on, so point-to-plane ICP has next to no information about
-  the in-plane position and the roll (its Cramer-Rao bound flags ``tx, ty, rz`` degenerate on most
-  frames; they were the 5-8 mm and 0.24 deg spikes of ``P2Plane+CV+rays``); the outline fixes
-  them, to the pixel quantisation of the edges (``--outline-points``, ``--outline-pairs``);
-- ``P2Plane+EKF+outline`` (extra row): the same refinement (from the prediction, no ICP first)
-  inside the pipeline's :class:`perception.pipeline.filter.PoseFilter` (the pipeline's default process
-  noise), which
-  fuses each frame's pose with the refinement's covariance. That covariance counts an edge
-  running with the pixel grid (roll 0, +-45, +-90 deg: all edges of a box) once, not once per
-  pixel, so on those frames (one flash frame places each such edge only to a pixel: 37 mm at
-  53 m) the filter leans on its prediction.
+- ``ICP`` (``icp``): point-to-point ICP on the full cloud (the seed's baseline), seed ICP
+  settings;
+- ``Proposed`` (``seed003``): :class:`~perception.estimation.flashtrack.Seed003Tracker` (line roll
+  prior, adaptive voxel grid, point-to-point ICP);
+- ``P2Plane`` (``p2plane``): our default ICP (point-to-plane, :class:`~perception.config.ICPConfig`
+  defaults) on a uniform random subset of the flash cloud (``--plane-points``, TriDAR-like sparse
+  sensing) from the last pose moved by the centroid's shift;
+- ``Lines+P2Plane`` (``seed003+p2plane``, extra row): the seed tracker's roll prior and voxel grid
+  with our point-to-plane ICP (its gate widened to 2 m) in place of point-to-point;
+- ``P2Plane+CV+rays`` (``p2plane+cv+rays``, extra row): our ICP as the tumbling-target mission
+  runs it on this target (each point matched to the face its measured ray crosses) from a
+  constant-velocity prediction, on the same uniform subset as ``P2Plane``;
+- ``P2Plane+CV+outline`` (``p2plane+cv+outline``, extra row): ``P2Plane+CV+rays``, then the
+  outline refinement (:class:`~perception.estimation.flashtrack.OutlineFlashTracker` without its
+  filter; ``--outline-points``, ``--outline-pairs``): the CYGNSS bus and wings are plates seen
+  nearly face-on, whose in-plane position and roll point-to-plane ICP barely constrains;
+- ``P2Plane+EKF+outline`` (``p2plane+ekf+outline``, extra row, the best):
+  :class:`~perception.estimation.flashtrack.OutlineFlashTracker`, the refinement from the
+  prediction of the pipeline's pose filter, which fuses each frame's pose with the refinement's
+  covariance (edges running with the pixel grid, at roll 0, +-45, +-90 deg, are placed only to a
+  pixel by one frame: there the filter leans on its prediction).
 
 Seed 003's figures: < 0.5 deg and ~1 cm, ~200 ms per frame on ~5,000 points.
 Our goals: max rotation error <= 0.2 deg, max position error <= 5 mm, <= 50 ms per frame.
 Plots mirroring the seed's Figs. 7-12 go to ``--out`` (default ``reports/seed003``).
+
+``--cull-timing N`` prints instead the cost of a culled flash frame
+(:meth:`perception.sensing.sensors.FlashLidar.rays_to_cast`) against its floor, a bare Embree
+``intersects_first`` of the full frame's rays (the call the sensor makes), on N poses per range.
 """
 
 from __future__ import annotations
@@ -54,7 +53,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -64,30 +63,79 @@ FloatArray = npt.NDArray[np.float64]
 GOAL_ROT_DEG = 0.2
 GOAL_POS_M = 0.005
 GOAL_TIME_S = 0.050
-METHODS = ("ICP", "Proposed", "P2Plane", "Lines+P2Plane", "P2Plane+CV+rays", "P2Plane+CV+outline",
-           "P2Plane+EKF+outline")
+METHODS = (
+    "ICP",
+    "Proposed",
+    "P2Plane",
+    "Lines+P2Plane",
+    "P2Plane+CV+rays",
+    "P2Plane+CV+outline",
+    "P2Plane+EKF+outline",
+)
+#: Each row's :data:`perception.estimation.flashtrack.FLASH_TRACKER_KINDS` name.
+METHOD_KINDS = {
+    "ICP": "icp",
+    "Proposed": "seed003",
+    "P2Plane": "p2plane",
+    "Lines+P2Plane": "seed003+p2plane",
+    "P2Plane+CV+rays": "p2plane+cv+rays",
+    "P2Plane+CV+outline": "p2plane+cv+outline",
+    "P2Plane+EKF+outline": "p2plane+ekf+outline",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("reports/seed003"),
-                        help="folder for the table, per-frame CSV, config and PNG plots")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("reports/seed003"),
+        help="folder for the table, per-frame CSV, config and PNG plots",
+    )
     parser.add_argument("--experiments", type=int, nargs="+", choices=(1, 2), default=[1, 2])
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     parser.add_argument("--frames", type=int, default=51, help="frames per experiment (seed: 51)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--init-error-deg", type=float, default=0.5,
-                        help="attitude error of the frame-1 initial pose [deg]")
-    parser.add_argument("--init-error-m", type=float, default=0.02,
-                        help="position error of the frame-1 initial pose [m]")
+    parser.add_argument(
+        "--init-error-deg",
+        type=float,
+        default=0.5,
+        help="attitude error of the frame-1 initial pose [deg]",
+    )
+    parser.add_argument(
+        "--init-error-m",
+        type=float,
+        default=0.02,
+        help="position error of the frame-1 initial pose [m]",
+    )
     parser.add_argument("--d-model", type=float, default=0.03, help="d_m of eq. (16) [m]")
     parser.add_argument("--q-lines", type=int, default=10, help="Q, longest lines matched")
-    parser.add_argument("--plane-points", type=int, default=2000,
-                        help="points per frame for the point-to-plane tracker")
-    parser.add_argument("--outline-points", type=int, default=2000,
-                        help="points per frame for the surface rows of the outline tracker")
-    parser.add_argument("--outline-pairs", type=int, default=1500,
-                        help="outline pixel pairs per frame for the outline tracker")
+    parser.add_argument(
+        "--plane-points",
+        type=int,
+        default=2000,
+        help="points per frame for the point-to-plane tracker",
+    )
+    parser.add_argument(
+        "--outline-points",
+        type=int,
+        default=2000,
+        help="points per frame for the surface rows of the outline tracker",
+    )
+    parser.add_argument(
+        "--outline-pairs",
+        type=int,
+        default=1500,
+        help="outline pixel pairs per frame for the outline tracker",
+    )
     parser.add_argument("--no-plots", action="store_true")
+    parser.add_argument(
+        "--cull-timing",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead of the experiments: time culled flash frames against a bare Embree cast of "
+        "the full frame on N random CYGNSS attitudes per range (20, 40, 60 m)",
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,237 +198,31 @@ def perturb(T: FloatArray, rng: np.random.Generator, rot_deg: float, pos_m: floa
 # ---------------------------------------------------------------------------------------------
 # Trackers
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class Step:
-    """One tracked frame: the pose, the points the estimator used, the grid size, the time."""
+def make_trackers(
+    names: list[str], target: Any, flash_cfg: Any, args: argparse.Namespace, experiment: int
+) -> dict[str, Any]:
+    """The public flash trackers (:func:`perception.estimation.flashtrack.make_flash_tracker`) of
+    ``names``, each drawing its point subsets from its own generator, seeded by
+    ``(seed, experiment, method)``: a row's numbers do not depend on which other rows run."""
+    from perception.estimation.flashtrack import make_flash_tracker
 
-    T: FloatArray
-    n_used: int
-    voxel_m: float
-    time_s: float
-    converged: bool
-
-
-class Tracker(Protocol):
-    def init(self, cloud: Any, T: FloatArray) -> Step: ...
-    def update(self, cloud: Any) -> Step: ...
-
-
-class PlainICP:
-    """The seed's baseline: point-to-point ICP on the whole cloud from the previous estimate."""
-
-    def __init__(self, model: Any, sigma: float, config: Any) -> None:
-        self.model, self.sigma, self.config = model, sigma, config
-        self.T: FloatArray | None = None
-        self.directions: FloatArray | None = None  # measured rays of the points being run
-
-    def _run(self, points: FloatArray, T0: FloatArray) -> Step:
-        from perception.estimation.registration import icp
-
-        t0 = time.perf_counter()
-        res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
-                  directions=self.directions)
-        dt = time.perf_counter() - t0
-        self.T = res.T_sensor_target
-        return Step(res.T_sensor_target, res.n_points, float("nan"), dt, res.converged)
-
-    def init(self, cloud: Any, T: FloatArray) -> Step:
-        return self._run(cloud.points, T)
-
-    def update(self, cloud: Any) -> Step:
-        assert self.T is not None
-        return self._run(cloud.points, self.T)
-
-
-class SparsePlaneICP(PlainICP):
-    """Our default tracker: point-to-plane ICP on a fixed-size uniform random subset, from the
-    previous pose moved by the shift of the cloud's centroid (the flash frames close in by 1 m per
-    frame, twice the default gate; the pipeline's filter would predict that motion)."""
-
-    def __init__(self, model: Any, sigma: float, config: Any, n_points: int,
-                 rng: np.random.Generator) -> None:
-        super().__init__(model, sigma, config)
-        self.n_points, self.rng = int(n_points), rng
-        self.centroid: FloatArray | None = None
-
-    def _indices(self, cloud: Any) -> npt.NDArray[np.intp] | None:
-        """The random subset's indices, or None when the cloud is no larger than it."""
-        n = len(cloud)
-        return None if n <= self.n_points else self.rng.choice(n, self.n_points, replace=False)
-
-    def _subset(self, cloud: Any) -> FloatArray:
-        idx = self._indices(cloud)
-        return cloud.points if idx is None else cloud.points[idx]
-
-    def init(self, cloud: Any, T: FloatArray) -> Step:
-        t0 = time.perf_counter()
-        self.centroid = cloud.points.mean(axis=0)
-        step = self._run(self._subset(cloud), T)
-        step.time_s = time.perf_counter() - t0
-        return step
-
-    def update(self, cloud: Any) -> Step:
-        assert self.T is not None and self.centroid is not None
-        t0 = time.perf_counter()
-        centroid = cloud.points.mean(axis=0)
-        T0 = self.T.copy()
-        T0[:3, 3] += centroid - self.centroid
-        self.centroid = centroid
-        step = self._run(self._subset(cloud), T0)
-        step.time_s = time.perf_counter() - t0
-        return step
-
-
-class PredictedRayPlaneICP(SparsePlaneICP):
-    """Point-to-plane ICP matched along the measured rays, from a constant-velocity prediction.
-
-    The first update has no velocity yet and uses the centroid shift like :class:`SparsePlaneICP`;
-    later ones repeat the last frame-to-frame motion in the target's frame,
-    ``T_k = T_{k-1} (T_{k-2}^-1 T_{k-1})`` (a constant roll rate and closing speed are predicted
-    exactly; the pipeline's filter does the same from its rate estimates).
-    """
-
-    def __init__(self, model: Any, sigma: float, config: Any, n_points: int,
-                 rng: np.random.Generator) -> None:
-        super().__init__(model, sigma, config, n_points, rng)
-        self.prev: FloatArray | None = None
-
-    def _subset(self, cloud: Any) -> FloatArray:
-        idx = self._indices(cloud)
-        self.directions = cloud.directions if idx is None else cloud.directions[idx]
-        return cloud.points if idx is None else cloud.points[idx]
-
-    def update(self, cloud: Any) -> Step:
-        assert self.T is not None
-        if self.prev is None:
-            self.prev = self.T.copy()
-            return super().update(cloud)
-        t0 = time.perf_counter()
-        T_pred = self.T @ np.linalg.solve(self.prev, self.T)
-        self.prev = self.T.copy()
-        step = self._run(self._subset(cloud), T_pred)
-        step.time_s = time.perf_counter() - t0
-        return step
-
-
-class OutlineRayPlaneICP(PredictedRayPlaneICP):
-    """:class:`PredictedRayPlaneICP`, then a joint refinement with the frame's outline.
-
-    ICP's pose is refined by :func:`perception.estimation.silhouette.refine_pose`: surface rows on the same
-    subset (each point on the face its ray crosses) and outline rows from the flash frame's
-    valid/invalid pixel pairs, which fix the in-plane position and the roll that the plates of a
-    face-on target leave unconstrained in point-to-plane ICP.
-    """
-
-    def __init__(self, target: Any, model: Any, sigma: float, config: Any, n_points: int,
-                 rng: np.random.Generator, geometry: Any, max_pairs: int) -> None:
-        super().__init__(model, sigma, config, n_points, rng)
-        self.target, self.geometry, self.max_pairs = target, geometry, int(max_pairs)
-        self._cloud: Any = None
-        self._idx: npt.NDArray[np.intp] | None = None
-        self.skip_icp = False  # refine straight from the prediction (FilteredOutlineICP)
-
-    def _subset(self, cloud: Any) -> FloatArray:
-        idx = self._indices(cloud)
-        self._cloud = cloud
-        self._idx = np.arange(len(cloud)) if idx is None else idx
-        self.directions = cloud.directions[self._idx]
-        return cloud.points[self._idx]
-
-    def _run(self, points: FloatArray, T0: FloatArray) -> Step:
-        from perception.estimation.registration import icp
-        from perception.estimation.silhouette import refine_pose
-
-        t0 = time.perf_counter()
-        converged = True
-        if not self.skip_icp:
-            res = icp(points, self.model, T0, sigma=self.sigma, config=self.config,
-                      directions=self.directions)
-            T0, converged = res.T_sensor_target, res.converged
-        ref = refine_pose(self._cloud, self.target, self.model, T0, self.geometry,
-                          sigma=self.sigma, surface_idx=self._idx, max_pairs=self.max_pairs)
-        dt = time.perf_counter() - t0
-        self.T = ref.T_sensor_target
-        self.result = ref
-        return Step(ref.T_sensor_target, ref.n_points, float("nan"), dt,
-                    converged and ref.converged)
-
-
-class FilteredOutlineICP(OutlineRayPlaneICP):
-    """:class:`OutlineRayPlaneICP` inside the pipeline's pose filter.
-
-    A single frame cannot place an edge that runs with the pixel grid better than its pixel
-    pitch (every pair along it has the same sub-pixel phase; at 53 m that is +-19 mm per edge,
-    and a box-shaped target at roll 0, +-45 or +-90 deg has only such edges).
-    :class:`perception.pipeline.filter.PoseFilter` (constant velocity and rate, the pipeline's default
-    process noise from :class:`~perception.config.PipelineConfig`) fuses each frame's refined
-    pose with the refinement's covariance, which counts such a group of parallel edges once; the
-    filter's posterior is the estimate and its prediction starts the next frame (no ICP: the
-    refinement's surface rows take it from there). The filter starts on frame 2 from the two
-    first poses (their difference as velocity and rate); frame 2 is predicted like
-    :class:`SparsePlaneICP`. The result leans on that prediction at the grid-aligned frames:
-    experiment 2's max position error is 1.8 mm with a tenth of the pipeline's acceleration
-    noise density, 4.6 mm with it and 8 mm with four times it (single frames: ~12 mm).
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        from perception.config import PipelineConfig
-        from perception.pipeline.filter import PoseFilter
-
-        super().__init__(*args, **kwargs)
-        pc = PipelineConfig()
-        self.filter = PoseFilter(pc.process_noise_accel**2, pc.process_noise_angacc**2)
-        self.t_prev = 0.0
-        self.rejected = 0
-
-    def init(self, cloud: Any, T: FloatArray) -> Step:
-        self.t_prev = float(cloud.t_start)
-        return super().init(cloud, T)
-
-    def update(self, cloud: Any) -> Step:
-        from scipy.spatial.transform import Rotation
-
-        assert self.T is not None
-        t = float(cloud.t_start)
-        if not self.filter.initialized:
-            T_prev = self.T.copy()
-            step = SparsePlaneICP.update(self, cloud)
-            dt = max(t - self.t_prev, 1e-9)
-            t0 = time.perf_counter()
-            omega = Rotation.from_matrix(step.T[:3, :3] @ T_prev[:3, :3].T).as_rotvec() / dt
-            self.filter.initialize(t, step.T, self.result.covariance,
-                                   velocity=(step.T[:3, 3] - T_prev[:3, 3]) / dt, omega=omega)
-            step.time_s += time.perf_counter() - t0
-            self.t_prev = t
-            return step
-        t0 = time.perf_counter()
-        self.skip_icp = True
-        step = self._run(self._subset(cloud), self.filter.pose_at(t))
-        if not self.filter.update(t, step.T, self.result.covariance).accepted:
-            self.rejected += 1
-        self.T = self.filter.T_sensor_target
-        self.t_prev = t
-        step.T = self.T
-        step.time_s = time.perf_counter() - t0
-        return step
-
-
-class Proposed:
-    """Adapter of :class:`perception.estimation.linetrack.LineRollTracker` to :class:`Step`."""
-
-    def __init__(self, tracker: Any) -> None:
-        self.tracker = tracker
-
-    def _step(self, res: Any) -> Step:
-        info = self.tracker.last
-        return Step(res.T_sensor_target, info.n_points_used, info.voxel_size_m, res.time_s,
-                    res.converged)
-
-    def init(self, cloud: Any, T: FloatArray) -> Step:
-        return self._step(self.tracker.init(cloud, T))
-
-    def update(self, cloud: Any) -> Step:
-        return self._step(self.tracker.update(cloud))
+    options: dict[str, dict[str, Any]] = {
+        "Proposed": {"q_lines": args.q_lines, "d_model": args.d_model},
+        "Lines+P2Plane": {"q_lines": args.q_lines, "d_model": args.d_model},
+        "P2Plane": {"n_points": args.plane_points},
+        "P2Plane+CV+rays": {"n_points": args.plane_points},
+        "P2Plane+CV+outline": {"n_points": args.outline_points, "max_pairs": args.outline_pairs},
+        "P2Plane+EKF+outline": {"n_points": args.outline_points, "max_pairs": args.outline_pairs},
+    }
+    out = {}
+    for name in names:
+        rng = None
+        if not METHOD_KINDS[name].startswith("seed003"):
+            rng = np.random.default_rng([args.seed, experiment, METHODS.index(name)])
+        out[name] = make_flash_tracker(
+            METHOD_KINDS[name], target, flash=flash_cfg, rng=rng, **options.get(name, {})
+        )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,60 +244,20 @@ class Run:
     voxel_m: list[float] = field(default_factory=list)
     converged: list[bool] = field(default_factory=list)
 
-    def add(self, step: Step, T_true: FloatArray, n_raw: int) -> None:
-        pe, ae, re = seed_errors(step.T, T_true)
+    def add(self, res: Any, T_true: FloatArray, n_raw: int, voxel_m: float = float("nan")) -> None:
+        """One frame's :class:`~perception.estimation.registration.RegistrationResult`."""
+        pe, ae, re = seed_errors(res.T_sensor_target, T_true)
         self.pos_err.append(pe)
         self.ang_err.append(ae)
         self.rot_err.append(re)
-        self.time_s.append(step.time_s)
+        self.time_s.append(res.time_s)
         self.n_raw.append(n_raw)
-        self.n_used.append(step.n_used)
-        self.voxel_m.append(step.voxel_m)
-        self.converged.append(step.converged)
+        self.n_used.append(res.n_points)
+        self.voxel_m.append(voxel_m)
+        self.converged.append(res.converged)
 
     def arrays(self) -> tuple[FloatArray, FloatArray]:
         return np.asarray(self.pos_err), np.asarray(self.ang_err)
-
-
-def _make_trackers(names: list[str], target: Any, flash_cfg: Any, args: argparse.Namespace,
-                   experiment: int) -> dict[str, Tracker]:
-    """The trackers of ``names``, each drawing its point subsets from its own generator, seeded by
-    ``(seed, experiment, method)``: a row's numbers do not depend on which other rows run."""
-    from perception.config import ICPConfig
-    from perception.estimation.linetrack import LineRollTracker, seed003_icp_config
-    from perception.estimation.registration import prepare_model
-
-    sigma = flash_cfg.range_error_m / math.sqrt(3.0)
-    out: dict[str, Tracker] = {}
-    for name in names:
-        rng = np.random.default_rng([args.seed, experiment, METHODS.index(name)])
-        if name == "ICP":
-            cfg = seed003_icp_config(sigma)
-            out[name] = PlainICP(prepare_model(target, cfg.model_points), sigma, cfg)
-        elif name == "Proposed":
-            out[name] = Proposed(LineRollTracker(target, q_lines=args.q_lines,
-                                                 d_model=args.d_model, flash=flash_cfg))
-        elif name == "Lines+P2Plane":
-            out[name] = Proposed(LineRollTracker(
-                target, q_lines=args.q_lines, d_model=args.d_model, flash=flash_cfg,
-                icp_config=ICPConfig(max_correspondence_m=2.0)))
-        elif name in ("P2Plane+CV+outline", "P2Plane+EKF+outline"):
-            from perception.estimation.silhouette import FlashGeometry
-
-            cfg = ICPConfig(match_along_rays=True)
-            cls = OutlineRayPlaneICP if name == "P2Plane+CV+outline" else FilteredOutlineICP
-            out[name] = cls(
-                target, prepare_model(target, cfg.model_points), sigma, cfg, args.outline_points,
-                rng, FlashGeometry.from_config(flash_cfg), args.outline_pairs)
-        elif name == "P2Plane+CV+rays":
-            cfg = ICPConfig(match_along_rays=True)
-            out[name] = PredictedRayPlaneICP(prepare_model(target, cfg.model_points), sigma, cfg,
-                                             args.plane_points, rng)
-        else:
-            cfg = ICPConfig()
-            out[name] = SparsePlaneICP(prepare_model(target, cfg.model_points), sigma, cfg,
-                                       args.plane_points, rng)
-    return out
 
 
 def run_experiment(experiment: int, args: argparse.Namespace) -> dict[str, Run]:
@@ -473,13 +275,14 @@ def run_experiment(experiment: int, args: argparse.Namespace) -> dict[str, Run]:
     truth = [T_from_seed_pose(p, a) for p, a in zip(pos, rpy)]
     clouds = [lidar.capture(target, T, rng, t=0.2 * k) for k, T in enumerate(truth)]
     T_init = perturb(truth[0], rng, args.init_error_deg, args.init_error_m)
-    trackers = _make_trackers(args.methods, target, flash_cfg, args, experiment)
+    trackers = make_trackers(args.methods, target, flash_cfg, args, experiment)
     runs: dict[str, Run] = {}
     for name, tracker in trackers.items():
         run = Run(name, experiment, pos[:, 0].copy())
-        run.add(tracker.init(clouds[0], T_init), truth[0], len(clouds[0]))
-        for cloud, T_true in zip(clouds[1:], truth[1:]):
-            run.add(tracker.update(cloud), T_true, len(cloud))
+        for k, (cloud, T_true) in enumerate(zip(clouds, truth)):
+            res = tracker.init(cloud, T_init) if k == 0 else tracker.track(cloud)
+            info = getattr(tracker, "info", None)  # the seed's tracker: its voxel grid size
+            run.add(res, T_true, len(cloud), float("nan") if info is None else info.voxel_size_m)
         runs[name] = run
     return runs
 
@@ -492,14 +295,24 @@ def error_rows(runs: dict[str, Run]) -> list[dict[str, Any]]:
     rows = []
     for name, r in runs.items():
         pe, ae = r.arrays()
-        for stat, fn in (("max", lambda a: np.max(np.abs(a), axis=0)),
-                         ("rms", lambda a: np.sqrt(np.mean(a * a, axis=0)))):
+        for stat, fn in (
+            ("max", lambda a: np.max(np.abs(a), axis=0)),
+            ("rms", lambda a: np.sqrt(np.mean(a * a, axis=0))),
+        ):
             a, p = fn(ae), fn(pe) * 1e3
-            rows.append({
-                "exp": r.experiment, "method": name, "stat": stat,
-                "roll_deg": float(a[0]), "pitch_deg": float(a[1]), "yaw_deg": float(a[2]),
-                "x_mm": float(p[0]), "y_mm": float(p[1]), "z_mm": float(p[2]),
-            })
+            rows.append(
+                {
+                    "exp": r.experiment,
+                    "method": name,
+                    "stat": stat,
+                    "roll_deg": float(a[0]),
+                    "pitch_deg": float(a[1]),
+                    "yaw_deg": float(a[2]),
+                    "x_mm": float(p[0]),
+                    "y_mm": float(p[1]),
+                    "z_mm": float(p[2]),
+                }
+            )
     return rows
 
 
@@ -514,31 +327,63 @@ def summary_rows(runs: dict[str, Run]) -> list[dict[str, Any]]:
         used = np.asarray(r.n_used)
         raw = np.asarray(r.n_raw)
         ok = rot <= GOAL_ROT_DEG and posn <= GOAL_POS_M and float(np.median(t)) <= GOAL_TIME_S
-        rows.append({
-            "exp": r.experiment, "method": name,
-            "max_rot_deg": rot, "max_pos_mm": posn * 1e3,
-            "median_ms": float(np.median(t)) * 1e3, "p90_ms": float(np.percentile(t, 90)) * 1e3,
-            "points_used": f"{int(np.median(used))} ({int(used.min())}-{int(used.max())})",
-            "points_raw": f"{int(np.median(raw))} ({int(raw.min())}-{int(raw.max())})",
-            "converged": f"{int(np.sum(r.converged))}/{len(r.converged)}",
-            "goals_met": "yes" if ok else "no",
-        })
+        rows.append(
+            {
+                "exp": r.experiment,
+                "method": name,
+                "max_rot_deg": rot,
+                "max_pos_mm": posn * 1e3,
+                "median_ms": float(np.median(t)) * 1e3,
+                "p90_ms": float(np.percentile(t, 90)) * 1e3,
+                "points_used": f"{int(np.median(used))} ({int(used.min())}-{int(used.max())})",
+                "points_raw": f"{int(np.median(raw))} ({int(raw.min())}-{int(raw.max())})",
+                "converged": f"{int(np.sum(r.converged))}/{len(r.converged)}",
+                "goals_met": "yes" if ok else "no",
+            }
+        )
     return rows
 
 
 def write_csv(path: Path, runs: dict[str, Run]) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["method", "frame", "distance_m", "roll_err_deg", "pitch_err_deg", "yaw_err_deg",
-                    "x_err_m", "y_err_m", "z_err_m", "rot_err_deg", "time_s", "points_raw",
-                    "points_used", "voxel_m", "converged"])
+        w.writerow(
+            [
+                "method",
+                "frame",
+                "distance_m",
+                "roll_err_deg",
+                "pitch_err_deg",
+                "yaw_err_deg",
+                "x_err_m",
+                "y_err_m",
+                "z_err_m",
+                "rot_err_deg",
+                "time_s",
+                "points_raw",
+                "points_used",
+                "voxel_m",
+                "converged",
+            ]
+        )
         for name, r in runs.items():
             pe, ae = r.arrays()
             for k in range(len(r.time_s)):
-                w.writerow([name, k + 1, f"{r.distance[k]:.3f}", *(f"{v:.6g}" for v in ae[k]),
-                            *(f"{v:.6g}" for v in pe[k]), f"{r.rot_err[k]:.6g}",
-                            f"{r.time_s[k]:.6g}", r.n_raw[k], r.n_used[k],
-                            f"{r.voxel_m[k]:.6g}", int(r.converged[k])])
+                w.writerow(
+                    [
+                        name,
+                        k + 1,
+                        f"{r.distance[k]:.3f}",
+                        *(f"{v:.6g}" for v in ae[k]),
+                        *(f"{v:.6g}" for v in pe[k]),
+                        f"{r.rot_err[k]:.6g}",
+                        f"{r.time_s[k]:.6g}",
+                        r.n_raw[k],
+                        r.n_used[k],
+                        f"{r.voxel_m[k]:.6g}",
+                        int(r.converged[k]),
+                    ]
+                )
 
 
 def _symlog_if_wide(ax: Any, runs: dict[str, Run], values_of: Any, linthresh: float) -> None:
@@ -557,9 +402,15 @@ def plot_experiment(out: Path, experiment: int, runs: dict[str, Run]) -> list[Pa
     import matplotlib.pyplot as plt
 
     figs = {1: (7, 8, 9), 2: (10, 11, 12)}[experiment]
-    styles = {"ICP": ("tab:red", "s"), "Proposed": ("tab:blue", "o"), "P2Plane": ("tab:green", "^"),
-              "Lines+P2Plane": ("tab:purple", "d"), "P2Plane+CV+rays": ("tab:orange", "v"),
-              "P2Plane+CV+outline": ("tab:brown", "P"), "P2Plane+EKF+outline": ("tab:gray", "X")}
+    styles = {
+        "ICP": ("tab:red", "s"),
+        "Proposed": ("tab:blue", "o"),
+        "P2Plane": ("tab:green", "^"),
+        "Lines+P2Plane": ("tab:purple", "d"),
+        "P2Plane+CV+rays": ("tab:orange", "v"),
+        "P2Plane+CV+outline": ("tab:brown", "P"),
+        "P2Plane+EKF+outline": ("tab:gray", "X"),
+    }
     paths = []
 
     def axes_of(title: str, n: int) -> tuple[Any, Any]:
@@ -616,6 +467,66 @@ def plot_experiment(out: Path, experiment: int, runs: dict[str, Run]) -> list[Pa
     return paths
 
 
+def cull_timing_rows(
+    poses: int, repeats: int = 3, ranges_m: tuple[float, ...] = (20.0, 40.0, 60.0), seed: int = 0
+) -> list[dict[str, Any]]:
+    """Culled flash frames (:meth:`~perception.sensing.sensors.FlashLidar.capture`, the default)
+    against their floor: a bare Embree ``intersects_first`` of the full frame's rays exactly as
+    the sensor casts them (float32, rotated into the target frame, one origin), and the frame
+    cast in full (``cull=False``) for reference. The CYGNSS at ``poses`` random attitudes per
+    range, near the boresight; the three calls alternate (``repeats`` times per pose) so that they
+    share the machine's load.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from perception.geometry import make_T
+    from perception.sensing.sensors import FlashLidar
+    from perception.targets import load_target
+
+    target, lidar = load_target("cygnss"), FlashLidar()
+    rng = np.random.default_rng(seed)
+    rows = []
+    for r in ranges_m:
+        samples: dict[str, list[float]] = {"culled": [], "bare": [], "full": []}
+        rays = []
+        for _ in range(poses):
+            R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+            T = make_T(R, [*rng.uniform(-1.0, 1.0, 2), r])
+            d_t = lidar.pixel_directions.astype(np.float32) @ R.astype(np.float32)
+            o_t = np.broadcast_to((-(R.T @ T[:3, 3])).astype(np.float32), d_t.shape)
+            calls = {
+                "culled": lambda T=T: lidar.capture(target, T, np.random.default_rng(0)),
+                "bare": lambda o=o_t, d=d_t: target.ray.intersects_first(o, d),
+                "full": lambda T=T: lidar.capture(target, T, np.random.default_rng(0), cull=False),
+            }
+            for fn in calls.values():  # warm-up
+                fn()
+            for _ in range(repeats):
+                for key, fn in calls.items():
+                    t0 = time.perf_counter()
+                    fn()
+                    samples[key].append(time.perf_counter() - t0)
+            cast = lidar.rays_to_cast(target, T)
+            rays.append(d_t.shape[0] if cast is None else cast.size)
+        med = {k: float(np.median(v)) for k, v in samples.items()}
+        p90 = {k: float(np.percentile(v, 90)) for k, v in samples.items()}
+        rows.append(
+            {
+                "range_m": r,
+                "rays_cast": f"{int(np.median(rays)):,} ({min(rays):,}-{max(rays):,})",
+                "median_ms": med["culled"] * 1e3,
+                "p90_ms": p90["culled"] * 1e3,
+                "floor_median_ms": med["bare"] * 1e3,
+                "floor_p90_ms": p90["bare"] * 1e3,
+                "ratio": med["culled"] / med["bare"],
+                "ratio_p90": p90["culled"] / p90["bare"],
+                "full_cast_median_ms": med["full"] * 1e3,
+                "full_cast_ratio": med["full"] / med["bare"],
+            }
+        )
+    return rows
+
+
 def run(args: argparse.Namespace) -> int:
     import yaml
 
@@ -624,6 +535,14 @@ def run(args: argparse.Namespace) -> int:
     from perception.config import FlashLidarConfig, ICPConfig
     from perception.estimation.linetrack import seed003_icp_config
 
+    if args.cull_timing > 0:
+        print(
+            "culled flash frames (500x500, 20x20 deg) on the CYGNSS, "
+            f"{args.cull_timing} random attitudes per range\nfloor: a bare Embree intersects_first "
+            "of the full frame's 250,000 rays as FlashLidar casts them (float32, target frame)"
+        )
+        print(format_table(cull_timing_rows(args.cull_timing, seed=args.seed), ".3g"))
+        return 0
     out: Path = args.out
     check_folder(out, "bench-seed003")  # before the work: its own files only
     claim_folder(out, "bench-seed003")
@@ -640,8 +559,17 @@ def run(args: argparse.Namespace) -> int:
         f"<= {GOAL_ROT_DEG} deg, max position <= {GOAL_POS_M * 1e3:.0f} mm, <= "
         f"{GOAL_TIME_S * 1e3:.0f} ms/frame"
     )
-    text = "\n".join([head, "", "errors (estimate - truth, seed axes: x boresight, y right, z down)",
-                      format_table(err, ".3f"), "", "summary", format_table(summ, ".3g")])
+    text = "\n".join(
+        [
+            head,
+            "",
+            "errors (estimate - truth, seed axes: x boresight, y right, z down)",
+            format_table(err, ".3f"),
+            "",
+            "summary",
+            format_table(summ, ".3g"),
+        ]
+    )
     print(text)
     (out / "seed003_table.md").write_text(text + "\n")
     for e, runs in all_runs.items():
@@ -651,13 +579,18 @@ def run(args: argparse.Namespace) -> int:
                 print(f"wrote {p}")
     flash = FlashLidarConfig()
     resolved = {
-        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
-                 if k != "handler"},
+        "args": {
+            k: (str(v) if isinstance(v, Path) else v)
+            for k, v in vars(args).items()
+            if k != "handler"
+        },
         "flash": flash.model_dump(mode="json"),
         "icp_point_to_point": seed003_icp_config(flash.range_error_m / math.sqrt(3.0)).model_dump(
-            mode="json"),
+            mode="json"
+        ),
         "icp_point_to_plane": ICPConfig().model_dump(mode="json"),
     }
-    (out / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(resolved)),
-                                                    sort_keys=False))
+    (out / "config.yaml").write_text(
+        yaml.safe_dump(json.loads(json.dumps(resolved)), sort_keys=False)
+    )
     return 0

@@ -1,58 +1,9 @@
-"""The seed-003 benchmark's pipeline-style tracker predicts constant motion exactly."""
+"""Bench seed003's rows: the filtered outline tracker through a grid-aligned frame, and each row
+independent of the others. (The trackers themselves: tests/perception/test_flash_tracking.py.)"""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
-from scipy.spatial.transform import Rotation
-
-from agents.benchmarks.seed003 import PredictedRayPlaneICP, Step
-from perception.geometry import make_T
-
-
-class _Cloud(SimpleNamespace):
-    def __len__(self) -> int:
-        return len(self.points)
-
-
-class _Recorder(PredictedRayPlaneICP):
-    """Records the initial pose handed to ICP and returns the truth of that frame."""
-
-    def __init__(self, truth: list[np.ndarray]) -> None:
-        super().__init__(None, 0.01, None, 10, np.random.default_rng(0))
-        self.truth, self.k, self.T0s = truth, 0, []
-
-    def _run(self, points: np.ndarray, T0: np.ndarray) -> Step:
-        self.T0s.append(T0.copy())
-        self.T = self.truth[self.k].copy()
-        self.k += 1
-        return Step(self.T, len(points), float("nan"), 0.0, True)
-
-
-def test_constant_roll_and_closing_are_predicted_exactly() -> None:
-    # 5 deg of roll about the boresight and 1 m of closing per frame, as in seed 003
-    M = make_T(Rotation.from_rotvec([0.0, 0.0, np.radians(5.0)]).as_matrix(), [0.0, 0.0, 0.0])
-    truth = [make_T(np.eye(3), [0.3, -0.2, 60.0])]
-    for _ in range(4):
-        T = truth[-1] @ M
-        T[2, 3] -= 1.0  # closing, sensor frame
-        truth.append(T)
-    rng = np.random.default_rng(1)
-    c = _Cloud(points=rng.normal(size=(20, 3)), directions=rng.normal(size=(20, 3)))
-    tr = _Recorder(truth)
-    tr.init(c, truth[0])
-    tr.update(c)  # no velocity yet: the previous pose moved by the centroid shift (zero here)
-    np.testing.assert_allclose(tr.T0s[1], truth[0], atol=1e-12)
-    for k in (2, 3, 4):
-        tr.update(c)
-        # the last motion repeated in the target frame: roll and closing both carried on
-        T_expected = truth[k - 1] @ np.linalg.solve(truth[k - 2], truth[k - 1])
-        np.testing.assert_allclose(tr.T0s[k], T_expected, atol=1e-12)
-        rot_err = Rotation.from_matrix(tr.T0s[k][:3, :3] @ truth[k][:3, :3].T).magnitude()
-        assert rot_err < 1e-9  # the roll is predicted exactly
-        # closing along the roll axis is constant in the target frame too: exact
-        np.testing.assert_allclose(tr.T0s[k][:3, 3], truth[k][:3, 3], atol=1e-9)
 
 
 def test_filtered_outline_tracker_meets_the_goals_through_a_grid_aligned_frame() -> None:

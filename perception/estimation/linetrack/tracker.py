@@ -165,8 +165,12 @@ class LineRollTracker:
         self.d_model = float(d_model)
         self.floor_gray = int(floor_gray)
         self.centroid_prior = bool(centroid_prior)
-        if roll_outlier_deg is not None and not (math.isfinite(roll_outlier_deg) and roll_outlier_deg > 0):
-            raise ValueError(f"roll_outlier_deg={roll_outlier_deg}; expected an angle > 0 [deg] or None")
+        if roll_outlier_deg is not None and not (
+            math.isfinite(roll_outlier_deg) and roll_outlier_deg > 0
+        ):
+            raise ValueError(
+                f"roll_outlier_deg={roll_outlier_deg}; expected an angle > 0 [deg] or None"
+            )
         self.roll_outlier_rad = None if roll_outlier_deg is None else math.radians(roll_outlier_deg)
         self.model_cloud: ModelCloud = prepare_model(
             model, self.icp_config.model_points, seed=model_seed
@@ -195,21 +199,33 @@ class LineRollTracker:
         image, _ = depth_map(points, self._fov, self._shape, floor_gray=self.floor_gray)
         return detect_lines(image, detector=self._detector)
 
-    def _register(self, points: FloatArray, T_pred: FloatArray, voxel: float
-                  ) -> tuple[RegistrationResult, int, float, float]:
+    def reset(self) -> None:
+        """Forget the track (the pose, the last frame's lines and centroid); :meth:`init` starts
+        a new one."""
+        self._T = None
+        self._lines = None
+        self._centroid = None
+        self._x_init = float("nan")
+        self.last = None
+
+    def _register(
+        self, points: FloatArray, T_pred: FloatArray, voxel: float
+    ) -> tuple[RegistrationResult, int, float, float]:
         t0 = time.perf_counter()
         sparse = voxel_downsample(points, voxel)
         t1 = time.perf_counter()
-        res = icp(sparse, self.model_cloud, T_pred, sigma=self.range_sigma_m,
-                  config=self.icp_config)
+        res = icp(
+            sparse, self.model_cloud, T_pred, sigma=self.range_sigma_m, config=self.icp_config
+        )
         return res, int(sparse.shape[0]), t1 - t0, time.perf_counter() - t1
 
     def _failed(self, res: RegistrationResult) -> bool:
         # Too few points or correspondences; a run that hit max_iterations still has a pose.
         return not res.converged and res.n_inliers < max(self.icp_config.min_points, 6)
 
-    def init(self, points_or_cloud: PointCloud | npt.ArrayLike, T_sensor_target: npt.ArrayLike
-             ) -> RegistrationResult:
+    def init(
+        self, points_or_cloud: PointCloud | npt.ArrayLike, T_sensor_target: npt.ArrayLike
+    ) -> RegistrationResult:
         """Start tracking on the first frame from an initial pose (acquisition or truth + error).
 
         The frame's lines are stored for the next match and ICP refines ``T_sensor_target`` on the
@@ -238,19 +254,35 @@ class LineRollTracker:
         self._T = T0.copy() if self._failed(res) else res.T_sensor_target.copy()
         self._x_init = float(self._T[2, 3]) if self._T[2, 3] > 0 else float(T0[2, 3])
         total = time.perf_counter() - t0
-        self.last = LineTrackInfo(0.0, False, len(self._lines), 0, self.d_model, points.shape[0],
-                                  n_used, t_lines, t_vox, t_icp, total)
+        self.last = LineTrackInfo(
+            0.0,
+            False,
+            len(self._lines),
+            0,
+            self.d_model,
+            points.shape[0],
+            n_used,
+            t_lines,
+            t_vox,
+            t_icp,
+            total,
+        )
         return dataclasses.replace(res, time_s=total)
 
-    def update(self, cloud: PointCloud | npt.ArrayLike) -> RegistrationResult:
+    def update(
+        self, cloud: PointCloud | npt.ArrayLike, prediction: npt.ArrayLike | None = None
+    ) -> RegistrationResult:
         """Track one frame (seed 003 Algorithm 1).
 
         Args:
             cloud: the current frame, a :class:`PointCloud` or (N, 3) points [m], sensor frame.
+            prediction: (4, 4) pose to start ICP from instead of the roll and centroid priors
+                (e.g. a pipeline filter's, which already carries the roll); the frame's lines
+                are still detected and kept for the next match.
 
         Returns:
-            The ICP result from the roll-predicted pose; ``time_s`` covers the whole step. On an
-            ICP failure the tracker keeps the predicted pose.
+            The ICP result from the roll-predicted pose (or ``prediction``); ``time_s`` covers
+            the whole step. On an ICP failure the tracker keeps the predicted pose.
         """
         if self._T is None or self._lines is None:
             raise RuntimeError("LineRollTracker.update called before init(points, T_sensor_target)")
@@ -258,12 +290,14 @@ class LineRollTracker:
         points = _points_of(cloud)
         lines = self.lines_of(points)
         matches = match_lines(self._lines, lines, self.alpha, self.threshold, self.q_lines)
-        droll = roll_variation(self._lines, lines, matches,
-                               max_deviation_rad=self.roll_outlier_rad)
-        T_pred = roll_about_boresight(self._T, droll if droll is not None else 0.0)
+        droll = roll_variation(self._lines, lines, matches, max_deviation_rad=self.roll_outlier_rad)
         centroid = _centroid(points)
-        if self.centroid_prior and self._centroid is not None and centroid is not None:
-            T_pred[:3, 3] += centroid - self._centroid
+        if prediction is not None:
+            T_pred = check_rigid(prediction, "prediction").copy()
+        else:
+            T_pred = roll_about_boresight(self._T, droll if droll is not None else 0.0)
+            if self.centroid_prior and self._centroid is not None and centroid is not None:
+                T_pred[:3, 3] += centroid - self._centroid
         self._lines = lines
         self._centroid = centroid
         t_lines = time.perf_counter() - t0
@@ -273,8 +307,17 @@ class LineRollTracker:
         self._T = T_pred if self._failed(res) else res.T_sensor_target.copy()
         total = time.perf_counter() - t0
         self.last = LineTrackInfo(
-            0.0 if droll is None else droll, droll is not None, len(lines), len(matches), voxel,
-            points.shape[0], n_used, t_lines, t_vox, t_icp, total,
+            0.0 if droll is None else droll,
+            droll is not None,
+            len(lines),
+            len(matches),
+            voxel,
+            points.shape[0],
+            n_used,
+            t_lines,
+            t_vox,
+            t_icp,
+            total,
         )
         return dataclasses.replace(res, time_s=total)
 

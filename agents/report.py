@@ -11,6 +11,8 @@ and returns an :class:`EpisodeRecord`. :func:`write_report` turns that into a fo
     trajectory.png     Hill-frame path (truth and TriDAR estimate), docking-frame approach
     errors_vs_range.png  estimation errors vs true range
     modes.png          TriDAR mode timeline with range and points per frame
+    modes_range.png    the phases (thermal bearing, LIDAR bearing, search, tracking, contact) over
+                       the true range on a log axis, with the range measurement's error
     contact.png        closing conditions against the capture envelope
     episode.mp4        rendered frames (imageio-ffmpeg), else episode.gif (Pillow)
 
@@ -47,7 +49,7 @@ KIND = "report"
 #: Columns of the report's per-step log (SI units; ``*_true`` is simulator truth, ``*_est`` the
 #: TriDAR estimate the controller saw, ``nan`` where the estimate was not valid).
 LOG_FIELDS: tuple[str, ...] = (
-    "step", "t", "mode", "pose_valid",
+    "step", "t", "mode", "phase", "pose_valid",
     "x_lvlh", "y_lvlh", "z_lvlh", "vx_lvlh", "vy_lvlh", "vz_lvlh",
     "x_lvlh_est", "y_lvlh_est", "z_lvlh_est",
     "port_x_true", "port_y_true", "port_z_true",
@@ -63,6 +65,17 @@ LOG_FIELDS: tuple[str, ...] = (
 
 MODES = ("bearing", "search", "tracking")
 _MODE_COLORS = {"bearing": "tab:orange", "search": "tab:red", "tracking": "tab:green"}
+#: The phases of a profile (seed 000 section 5): bearing split by what measured the bearing.
+_PHASE_COLORS = {"thermal bearing": "tab:purple", "LIDAR bearing": "tab:orange", "bearing": "tab:brown",
+                 "search": "tab:red", "tracking": "tab:green", "contact": "k"}
+
+
+def phase_of(mode: str, bearing_source: str) -> str:
+    """The profile phase of a step: ``thermal bearing`` / ``LIDAR bearing`` in bearing mode (by
+    what measured the bearing; ``bearing`` with none), else the mode."""
+    if mode != "bearing":
+        return mode
+    return {"thermal": "thermal bearing", "lidar": "LIDAR bearing"}.get(bearing_source, "bearing")
 
 
 class EpisodeRecorder(gym.Wrapper):
@@ -125,8 +138,13 @@ class EpisodeRecorder(gym.Wrapper):
         c = info["contact"]
         acts = np.full(6, np.nan)
         acts[: action.size] = action
+        sv = base.state_vector
+        phase = phase_of(info["mode"], sv.bearing_source if sv is not None else "")
+        if info.get("termination") in ("docked", "collision"):
+            phase = "contact"
         row: dict[str, Any] = {
-            "step": self._n, "t": float(info["t"]), "mode": info["mode"], "pose_valid": pose,
+            "step": self._n, "t": float(info["t"]), "mode": info["mode"], "phase": phase,
+            "pose_valid": pose,
         }
         row.update(zip(("x_lvlh", "y_lvlh", "z_lvlh"), map(float, info["truth_r_lvlh"])))
         row.update(zip(("vx_lvlh", "vy_lvlh", "vz_lvlh"), map(float, info["truth_v_lvlh"])))
@@ -220,8 +238,11 @@ def fly(
 def mode_timeline(t: Sequence[float], modes: Sequence[str], dt: float) -> list[tuple[str, float, float]]:
     """Collapse per-step modes into ``(mode, t_start, t_end)`` segments [s]."""
     out: list[tuple[str, float, float]] = []
+    prev = None
     for ti, m in zip(t, modes):
-        start = float(ti) - dt
+        # A step starts where the last one ended (steps may lengthen with range).
+        start = float(ti) - dt if prev is None else prev
+        prev = float(ti)
         if out and out[-1][0] == m:
             out[-1] = (m, out[-1][1], float(ti))
         else:
@@ -260,6 +281,7 @@ def summary_dict(record: EpisodeRecord) -> dict[str, Any]:
         "episode_return": r.episode_return, "contact": r.contact,
         "envelope": envelope_check(cfg, r.contact),
         "mode_timeline": [{"mode": m, "start_s": a, "end_s": b} for m, a, b in timeline],
+        "phase_timeline": phase_segments(record),
         "time_in_mode_s": r.time_in_mode_s, "acquisitions": r.acquisitions,
         "max_pos_err_m": r.max_pos_err_m, "rms_pos_err_m": r.rms_pos_err_m,
         "max_att_err_deg": r.max_att_err_deg, "rms_att_err_deg": r.rms_att_err_deg,
@@ -288,6 +310,11 @@ def format_summary(s: dict[str, Any], out_dir: Path | None = None) -> str:
     if len(segs) > 4:  # keep it on one line: the first segment and the last two
         segs = segs[:1] + [f"...{len(segs) - 3} more..."] + segs[-2:]
     lines.append(f"modes [s]    {', '.join(segs)}; {s['acquisitions']} acquisition(s)")
+    firsts: dict[str, float] = {}  # each phase's first range, in order
+    for d in s.get("phase_timeline", []):
+        firsts.setdefault(d["phase"], d["range_start_m"])
+    if firsts:
+        lines.append("phases       " + " -> ".join(f"{p} from {r:.0f} m" for p, r in firsts.items()))
     if np.isfinite(s["max_pos_err_m"]):
         lines.append(
             f"estimation   max error {100 * s['max_pos_err_m']:.2f} cm / {s['max_att_err_deg']:.2f} deg "
@@ -440,6 +467,53 @@ def plot_modes(rec: EpisodeRecord, path: Path) -> Path:
     return path
 
 
+def phase_segments(rec: EpisodeRecord) -> list[dict[str, Any]]:
+    """The profile's phases in order, each with its time span [s] and true range span [m]."""
+    t = rec.column("t").astype(float)
+    rng = rec.column("range_true").astype(float)
+    phases = rec.column("phase").tolist()
+    out: list[dict[str, Any]] = []
+    for i, ph in enumerate(phases):
+        if out and out[-1]["phase"] == ph:
+            out[-1].update(end_s=float(t[i]), range_end_m=float(rng[i]))
+        else:
+            out.append({"phase": ph, "start_s": float(t[i - 1]) if i else 0.0, "end_s": float(t[i]),
+                        "range_start_m": float(rng[i]), "range_end_m": float(rng[i])})
+    return out
+
+
+def plot_mode_ranges(rec: EpisodeRecord, path: Path) -> Path:
+    """The phases over the true range (log axis, closing to the right), and the range
+    measurement's error against the same axis."""
+    from matplotlib.patches import Patch
+
+    fig = _figure(9, 5)
+    ax0, ax1 = fig.subplots(2, 1, sharex=True, height_ratios=[1, 3])
+    rng = np.maximum(rec.column("range_true").astype(float), 0.1)
+    phases = rec.column("phase").tolist()
+    for i in range(len(rng)):
+        a = rng[i - 1] if i else rng[i] * 1.02
+        ax0.fill_betweenx([0, 1], a, rng[i], color=_PHASE_COLORS.get(phases[i], "0.5"), lw=0)
+    seen = [p for p in _PHASE_COLORS if p in set(phases)]
+    ax0.legend(handles=[Patch(color=_PHASE_COLORS[p], label=p) for p in seen], ncol=len(seen) or 1,
+               fontsize=7, loc="upper left")
+    ax0.set(yticks=[], title="TriDAR phases over range")
+    err = np.abs(rec.column("range_est").astype(float) - rng)
+    ok = np.isfinite(err)
+    for ph in seen:
+        m = ok & (np.asarray(phases) == ph)
+        if m.any():
+            ax1.plot(rng[m], np.maximum(err[m], 1e-3), ".", ms=2, color=_PHASE_COLORS[ph], label=ph)
+    ax1.set(xlabel="true range [m] (log)", ylabel="|measured - true range| [m]")
+    ax1.set_yscale("log")
+    for ax in (ax0, ax1):
+        ax.set_xscale("log")
+    ax1.set_xlim(max(float(np.nanmax(rng)), 1.0) * 1.05, max(float(np.nanmin(rng)), 0.1) * 0.95)
+    ax1.grid(alpha=0.3, which="both")
+    fig.savefig(path)
+    return path
+
+
 def plot_contact(rec: EpisodeRecord, path: Path) -> Path:
     """Closing speed, lateral offset and speed, angular rate over the last metres vs the envelope."""
     e = rec.cfg.env.envelope
@@ -493,6 +567,7 @@ def _write_files(record: EpisodeRecord, out: Path, video: bool, fps: int) -> dic
     files["trajectory"] = plot_trajectory(record, out / "trajectory.png")
     files["errors_vs_range"] = plot_errors(record, out / "errors_vs_range.png")
     files["modes"] = plot_modes(record, out / "modes.png")
+    files["modes_range"] = plot_mode_ranges(record, out / "modes_range.png")
     files["contact"] = plot_contact(record, out / "contact.png")
     if video:
         v = write_video(record.frames, out, fps)

@@ -19,7 +19,7 @@ import yaml
 from agents.cli import command
 
 DEMO_ENV_ID = "TriDAR/FinalApproach-v0"
-CONTROLLERS = "glideslope | lqr | sync | sb3:<model.zip> | module:Class"
+CONTROLLERS = "glideslope | lqr | sync | fly_around | sb3:<model.zip> | module:Class"
 
 
 def _common(p: argparse.ArgumentParser, controller_default: str, out_default: str) -> None:
@@ -52,7 +52,8 @@ def add_demo(p: argparse.ArgumentParser) -> None:
 @command("run", "fly any mission YAML with a controller and write a report folder")
 def add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("mission", help="mission YAML file or a name in configs/missions")
-    _common(p, "sync for a 6-DOF chaser, else glideslope", "reports/run-<mission>-<time>")
+    _common(p, "fly_around for a fly-around task, sync for a 6-DOF chaser, else glideslope",
+            "reports/run-<mission>-<time>")
     p.set_defaults(handler=run_mission, controller_default=None)
 
 
@@ -125,7 +126,8 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
     cfg = env.unwrapped.cfg
     name = args.controller or args.controller_default
     if name is None:
-        name = "sync" if cfg.dynamics.chaser.attitude == "controlled" else "glideslope"
+        name = ("fly_around" if cfg.env.task == "fly_around"
+                else "sync" if cfg.dynamics.chaser.attitude == "controlled" else "glideslope")
     controller = make_controller(name, cfg)
     total = args.max_steps or cfg.env.max_episode_steps
     bar = tqdm(total=total, unit="step", disable=args.no_progress, dynamic_ncols=True,

@@ -135,7 +135,7 @@ def test_make_controller_by_name_and_clear_errors(monkeypatch):
     cfg = load_config("final_approach", env__perception="truth")
     assert isinstance(make_controller("glideslope", cfg), GlideslopeController)
     assert isinstance(make_controller("agents.glideslope:GlideslopeController", cfg), GlideslopeController)
-    with pytest.raises(ValueError, match="unknown; expected one of glideslope, lqr, sync"):
+    with pytest.raises(ValueError, match="unknown; expected one of fly_around, glideslope, lqr, sync"):
         make_controller("pid", cfg)
     import agents.controllers as ac
 

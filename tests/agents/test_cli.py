@@ -217,3 +217,20 @@ def test_sigterm_in_a_campaign_closes_the_cluster(tmp_path: Path) -> None:
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert lines[-1] == "tridar-env campaign: terminated (SIGTERM)", res.stderr
     assert "Traceback" not in res.stderr and "leaked" not in res.stderr, res.stderr
+
+
+def test_envs_lists_every_id_on_one_line(capsys) -> None:
+    import json as _json
+
+    from tridar_env.registration import ENV_IDS
+
+    assert main(["envs"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    for env_id, mission in ENV_IDS.items():
+        (line,) = [ln for ln in lines if ln.startswith(env_id + " ")]
+        assert mission in line
+    assert main(["envs", "--json"]) == 0
+    rows = _json.loads(capsys.readouterr().out)
+    far = {r["id"]: r for r in rows}["TriDAR/FarRendezvous-v0"]
+    assert far["steps_lengthen"] and far["start_range_m"] >= 4000.0
+    assert {r["id"]: r for r in rows}["TriDAR/FlyAround-v0"]["task"] == "fly_around"

@@ -222,12 +222,13 @@ class OutlineFlashTracker(IcpFlashTracker):
                 f"the filter's gate refused the measurement (Mahalanobis^2 "
                 f"{update.mahalanobis2:.3g}); the estimate is its prediction"
             )
-        self._advance(self.filter.T_sensor_target)
+        T = self.filter.T_sensor_target
+        self._advance(T)
         self._t = t_k
         P = self.filter.target_state()[4][np.ix_(_POSE_STATES, _POSE_STATES)]
         return dataclasses.replace(
             meas,
-            T_sensor_target=self._T.copy(),
+            T_sensor_target=T,
             covariance=0.5 * (P + P.T),
             reason=reason,
             time_s=time.perf_counter() - t0,

@@ -16,8 +16,9 @@ def test_filtered_outline_tracker_meets_the_goals_through_a_grid_aligned_frame()
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args(["--frames", "8", "--methods", "P2Plane+CV+outline",
-                              "P2Plane+EKF+outline"])
+    args = parser.parse_args(
+        ["--frames", "8", "--methods", "P2Plane+CV+outline", "P2Plane+EKF+outline"]
+    )
     runs = run_experiment(2, args)
     for name, run in runs.items():
         pe, _ = run.arrays()
@@ -41,6 +42,9 @@ def test_a_rows_numbers_do_not_depend_on_the_other_rows() -> None:
     few = ["--frames", "4", "--plane-points", "500"]  # fewer than the frames' 1,200: subsets
     alone = run_experiment(1, parser.parse_args([*few, "--methods", "P2Plane+CV+rays"]))
     after = run_experiment(1, parser.parse_args([*few, "--methods", "P2Plane", "P2Plane+CV+rays"]))
-    np.testing.assert_array_equal(alone["P2Plane+CV+rays"].rot_err, after["P2Plane+CV+rays"].rot_err)
-    np.testing.assert_array_equal(alone["P2Plane+CV+rays"].arrays()[0],
-                                  after["P2Plane+CV+rays"].arrays()[0])
+    np.testing.assert_array_equal(
+        alone["P2Plane+CV+rays"].rot_err, after["P2Plane+CV+rays"].rot_err
+    )
+    np.testing.assert_array_equal(
+        alone["P2Plane+CV+rays"].arrays()[0], after["P2Plane+CV+rays"].arrays()[0]
+    )

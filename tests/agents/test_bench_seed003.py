@@ -48,3 +48,12 @@ def test_a_rows_numbers_do_not_depend_on_the_other_rows() -> None:
     np.testing.assert_array_equal(
         alone["P2Plane+CV+rays"].arrays()[0], after["P2Plane+CV+rays"].arrays()[0]
     )
+
+
+def test_cull_timing_table_runs() -> None:
+    """``--cull-timing``: a culled frame casts a few thousand rays at 60 m and its row names them."""
+    from agents.benchmarks.seed003 import cull_timing_rows
+
+    (row,) = cull_timing_rows(1, repeats=1, ranges_m=(60.0,))
+    assert row["range_m"] == 60.0 and row["median_ms"] > 0 and row["floor_median_ms"] > 0
+    assert int(row["rays_cast"].split()[0].replace(",", "")) < 10_000

@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from pydantic import BaseModel
 
-import tridar_env  # noqa: F401  (registers the ids)
+import tridar_env  # registers the ids
 from perception.config import MAX_NODES, MissionConfig, load_config, resolve_config
 
 FUZZ = settings(
@@ -33,7 +33,7 @@ FUZZ = settings(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
     database=None,
 )
-IDS = ("TriDAR/FinalApproach-v0", "TriDAR/TumblingTarget-v0", "TriDAR/Rendezvous-v0")
+IDS = tuple(tridar_env.ENV_IDS)
 
 
 def _assert_one_line_refusal(exc: BaseException) -> None:

@@ -367,6 +367,8 @@ class World:
         def build() -> tuple[FloatArray, FloatArray]:
             r, v = self.state[:3], self.state[3:]
             rn = math.sqrt(float(r @ r))
+            if rn < 1e-6:  # at the centre of mass itself: no direction to aim; the docking attitude
+                return self.R_lvlh_target @ self._R_target_dock, np.zeros(3)
             z = -r / rn
             z_dot = -(v - (-z) * float(-z @ v)) / rn
             h = np.array([0.0, 0.0, 1.0])

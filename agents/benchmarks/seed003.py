@@ -5,7 +5,8 @@ Zhao, Xu and Bo (Sensors 2018) section 3: a CYGNSS-like target (3.55 x 1.10 x 0.
 10 m (1 m per frame) while the target rolls from 125 to -125 deg (5 deg per frame). Experiment 2
 adds a pitch from 10 to 0 deg and a lateral offset y from 10 to 0 m (0.2 per frame). Poses are
 written in the seed's frames (X toward the target, Y right, Z down; roll about X) and converted
-with :func:`perception.estimation.linetrack.T_from_seed_pose`; errors are reported back in those frames.
+with :func:`perception.estimation.linetrack.T_from_seed_pose`; errors are reported back in those
+frames.
 
 Trackers: the public flash trackers of :mod:`perception.estimation.flashtrack` (one row per
 :data:`~perception.estimation.flashtrack.FLASH_TRACKER_KINDS` name, built by

@@ -120,7 +120,7 @@ class IcpFlashTracker:
         self._T = self._T_before = self._centroid = None
 
     def init(self, frame: PointCloud, T_sensor_target: npt.ArrayLike) -> RegistrationResult:
-        """Start on ``frame`` from ``T_sensor_target``: ICP from it (see :class:`~.base.FlashTracker`)."""
+        """Start on ``frame`` from ``T_sensor_target``: ICP from it."""
         t0 = time.perf_counter()
         frame = check_frame(frame, organised=self._needs_grid)
         T0 = check_rigid(T_sensor_target, "T_sensor_target")
@@ -133,7 +133,7 @@ class IcpFlashTracker:
     def track(
         self, frame: PointCloud, prediction: npt.ArrayLike | None = None, t: float | None = None
     ) -> RegistrationResult:
-        """ICP on ``frame`` from ``prediction`` or the motion model (see :class:`~.base.FlashTracker`)."""
+        """ICP on ``frame`` from ``prediction``, or from the motion model's."""
         t0 = time.perf_counter()
         frame = check_frame(frame, organised=self._needs_grid)
         frame_time(frame, t)

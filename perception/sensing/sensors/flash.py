@@ -18,11 +18,12 @@ pixels inside the image outline of the target's bounding box (padded by :data:`C
 clipped at the depth nearer than which any return is under ``min_range_m``), from the pose the
 frame is captured at. That outline is the convex hull of the box's projected corners in the
 plane ``z = 1``, where a pixel's ray sits at ``x/z = tan(az)`` (its column) and
-``y/z = tan(down)`` (its row): per row, the hull's chord is a run of columns. Only those rays go to Embree, and the frame is bitwise the frame of the full cast: a ray left out
-would have missed (or returned from outside the range window), each cast ray gets the very
-float32 direction the full cast gives it, and the range errors are drawn for the same valid
-pixels in the same order. The directions: the same float32 matrix product on fewer rows gives
-each row the same bits (OpenBLAS's sgemm, checked on every core type it ships, Haswell to
+``y/z = tan(down)`` (its row): per row, the hull's chord is a run of columns. Only those rays go
+to Embree, and the frame is bitwise the frame of the full cast: a ray left out would have missed
+(or returned from outside the range window), each cast ray gets the very float32 direction the
+full cast gives it, and the range errors are drawn for the same valid pixels in the same order.
+The directions: the same float32 matrix product on fewer rows gives each row the same bits
+(OpenBLAS's sgemm; checked on the 16 x86-64 core types ``OPENBLAS_CORETYPE`` selects, Core2 to
 SapphireRapids, and in the tests), except a single row, which numpy hands to sgemv and the
 Haswell and Zen kernels round differently: a lone ray is rotated as a pair. (Rotating the whole
 grid and gathering would not lean on that, but costs a 250,000-row product whose two OpenBLAS
@@ -53,7 +54,7 @@ __all__ = ["CULL_PAD_M", "FlashLidar"]
 #: as a hit is left out.
 CULL_PAD_M = 0.005
 
-#: Padding of the culling rectangle in the image plane [tangent units]: the rounding of the
+#: Padding of the culling outline in the image plane [tangent units]: the rounding of the
 #: projection and of a pixel's ``x/z`` (a pixel is ~7e-4 wide here).
 _CULL_PAD_TAN = 1e-6
 

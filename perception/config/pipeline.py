@@ -80,6 +80,11 @@ class IntegrityConfig(StrictModel):
         "its least-constrained direction; what ICP does not bring back is added to the "
         "registrations' covariance along it (None: off)"
     )
+    acquisition_floor_fraction: Annotated[Float, Field(ge=0, le=0.1)] = Field(
+        0.0, description="a track PAH started from nothing takes its first pose with at least this "
+        "fraction of the range as position sigma (PAH's basin, not ICP's noise: 0.3-0.8 m at 83 m "
+        "on the ISS-like port); its velocity then comes from the frames that follow (0: off)"
+    )
     slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
         0.001, description="slide probe's push: max(3 sigma, this * range) [m]"
     )

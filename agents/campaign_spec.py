@@ -230,7 +230,7 @@ class CampaignConfig(BaseModel):
     name: str = "campaign"
     env_id: str = "TriDAR/FinalApproach-v0"
     mission: str | None = None
-    perception: Literal["truth", "truth+noise", "tridar"] = "tridar"
+    perception: Literal["truth", "truth+noise", "tridar", "flash"] = "tridar"
     controller: str = "glideslope"
     runs: Annotated[int, Field(ge=1, le=10_000_000)] = 100
     seed: Annotated[int, Field(ge=0)] = 0

@@ -271,7 +271,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._prev_distance = 0.0
         self._prev_lateral = 0.0
         self._fly_around = FlyAroundTask(self.cfg.env) if self.cfg.env.task == "fly_around" else None
-        self._pre_frame = self.cfg.env.decision_schedule is not None and self.cfg.env.perception == "tridar"
+        self._pre_frame = (self.cfg.env.decision_schedule is not None
+                           and self.cfg.env.perception in ("tridar", "flash"))
         self._step_dt = 0.0
         self._decision_range: float | None = None
         self._renderer: Any = None

@@ -19,7 +19,12 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.geometry import fast_matrix_to_quat
-from perception.pipeline.integrity import alert_limit, integrity_factor, port_covariance, protection_level
+from perception.pipeline.integrity import (
+    alert_limit,
+    integrity_factor,
+    port_covariance,
+    protection_level,
+)
 from perception.pipeline.state import Mode, StateVector, Validity
 from perception.targets import TargetModel
 from tridar_env.world import SensorTruth, World
@@ -200,12 +205,19 @@ class TruthObserver:
 
 
 class TriDARObserver:
-    """The full TriDAR pipeline (:class:`perception.pipeline.TriDAR`) on the truth scene."""
+    """The full TriDAR pipeline (:class:`perception.pipeline.TriDAR`) on the truth scene, or with
+    ``flash`` its flash-LiDAR form (:class:`perception.pipeline.flash.FlashPipeline`)."""
 
-    def __init__(self, cfg: MissionConfig, target: TargetModel) -> None:
-        from perception.pipeline import TriDAR  # the product's perception, built on first use
+    def __init__(self, cfg: MissionConfig, target: TargetModel, flash: bool = False) -> None:
+        # The product's perception, built on first use.
+        if flash:
+            from perception.pipeline.flash import FlashPipeline
 
-        self.pipeline = TriDAR(cfg, target)
+            self.pipeline = FlashPipeline(cfg, target)
+        else:
+            from perception.pipeline import TriDAR
+
+            self.pipeline = TriDAR(cfg, target)
         self.ego = cfg.pipeline.ego_motion
 
     @property
@@ -229,4 +241,4 @@ def make_observer(cfg: MissionConfig, target: TargetModel) -> Observer:
         return TruthObserver(cfg, noisy=False, target=target)
     if kind == "truth+noise":
         return TruthObserver(cfg, noisy=True, target=target)
-    return TriDARObserver(cfg, target)
+    return TriDARObserver(cfg, target, flash=kind == "flash")

@@ -22,7 +22,7 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("--serial", action="store_true", help="run in this process, no Dask")
     p.add_argument("--runs", type=int, default=None, help="override the number of runs")
     p.add_argument("--seed", type=int, default=None, help="override the campaign seed")
-    p.add_argument("--perception", choices=["truth", "truth+noise", "tridar"], default=None,
+    p.add_argument("--perception", choices=["truth", "truth+noise", "tridar", "flash"], default=None,
                    help="override the perception mode")
     p.add_argument("--controller", default=None, help="override the controller name")
     p.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")

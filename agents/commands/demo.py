@@ -25,7 +25,7 @@ CONTROLLERS = "glideslope | lqr | sync | fly_around | sb3:<model.zip> | module:C
 def _common(p: argparse.ArgumentParser, controller_default: str, out_default: str) -> None:
     p.add_argument("--controller", default=None,
                    help=f"{CONTROLLERS} (default: {controller_default})")
-    p.add_argument("--perception", choices=["tridar", "truth", "truth+noise"], default=None,
+    p.add_argument("--perception", choices=["tridar", "flash", "truth", "truth+noise"], default=None,
                    help="state-vector source (default: env.perception of the mission config)")
     p.add_argument("--seed", type=int, default=0, help="reset seed (default 0)")
     p.add_argument("--out", type=Path, default=None,

@@ -18,7 +18,7 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", help="model.zip written by 'tridar-env train', or its run folder")
     p.add_argument("--env-id", default=None,
                    help="Gymnasium id (default: the one the policy was trained on)")
-    p.add_argument("--perception", choices=["truth", "truth+noise", "tridar"], default="tridar",
+    p.add_argument("--perception", choices=["truth", "truth+noise", "tridar", "flash"], default="tridar",
                    help="perception mode to evaluate on (default: the full TriDAR pipeline)")
     p.add_argument("--episodes", type=int, default=20, help="number of episodes (default 20)")
     p.add_argument("--seed", type=int, default=0, help="evaluation seed (episode i: campaign seed rule)")

@@ -147,7 +147,11 @@ class FlyAroundRewardConfig(StrictModel):
 class EnvConfig(StrictModel):
     """Gymnasium environment settings."""
 
-    perception: Literal["tridar", "truth", "truth+noise"] = "tridar"
+    perception: Literal["tridar", "flash", "truth", "truth+noise"] = Field(
+        "tridar", description="tridar: the scanning TriDAR pipeline; flash: the same modes, filter "
+        "and integrity on seed 003's flash LiDAR (mission section flash); truth, truth+noise: "
+        "stand-ins"
+    )
     task: Literal["docking", "fly_around"] = Field(
         "docking", description="docking: reach the port inside the capture envelope; fly_around: "
         "undock and circle the target (env.fly_around)"

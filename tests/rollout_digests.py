@@ -16,9 +16,11 @@ import sys
 
 import numpy as np
 
-ENV_IDS = ("TriDAR/FinalApproach-v0", "TriDAR/TumblingTarget-v0", "TriDAR/Rendezvous-v0")
-PERCEPTIONS = ("truth", "truth+noise", "tridar")
-STEPS = {"truth": 80, "truth+noise": 80, "tridar": 60}
+from tridar_env.registration import ENV_IDS as _IDS
+
+ENV_IDS = tuple(_IDS)
+PERCEPTIONS = ("truth", "truth+noise", "tridar", "flash")
+STEPS = {"truth": 80, "truth+noise": 80, "tridar": 60, "flash": 40}
 
 
 def _round(a: np.ndarray) -> bytes:

@@ -1,7 +1,8 @@
 """tridar-env: a Gymnasium environment for spacecraft rendezvous and docking seen through TriDAR.
 
-``import tridar_env`` registers ``TriDAR/FinalApproach-v0``, ``TriDAR/TumblingTarget-v0`` and
-``TriDAR/Rendezvous-v0`` with Gymnasium (``gymnasium.make`` builds a :class:`DockingEnv`;
+``import tridar_env`` registers the ids of :data:`ENV_IDS` (``TriDAR/FinalApproach-v0``,
+``TumblingTarget-v0``, ``Rendezvous-v0``, ``FarRendezvous-v0``, ``FlyAround-v0``, ``Seed003-v0``)
+with Gymnasium (``gymnasium.make`` builds a :class:`DockingEnv`;
 ``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")`` a :class:`TruthVectorEnv`).
 """
 

@@ -8,6 +8,7 @@ TriDAR/TumblingTarget-v0  tumbling_target: cygnss spinning, 60 m      6000 (20 m
 TriDAR/Rendezvous-v0      rendezvous: from 500 m in bearing mode      20000
 TriDAR/FarRendezvous-v0   far_rendezvous: from 5 km, thermal bearing  20000 (steps lengthen)
 TriDAR/FlyAround-v0       fly_around: undock, circle at 100 m         12000
+TriDAR/Seed003-v0         seed003: tumbling cygnss, flash LiDAR       6000
 ========================  ==========================================  =================
 
 ``gymnasium.make(id, config=path_or_overrides, perception="truth", **overrides)`` passes its
@@ -39,6 +40,7 @@ ENV_IDS: dict[str, str] = {
     "TriDAR/Rendezvous-v0": "rendezvous",
     "TriDAR/FarRendezvous-v0": "far_rendezvous",
     "TriDAR/FlyAround-v0": "fly_around",
+    "TriDAR/Seed003-v0": "seed003",
 }
 
 

@@ -1,7 +1,8 @@
 """Environment throughput: steps/s with ``perception="truth"`` and ``"tridar"``, single and vector.
 
 Uses ``gymnasium.utils.performance.benchmark_step`` (random actions, auto-reset) on each id; the
-peer row is the same env with truth perception, so the ratio shows what the TriDAR pipeline costs.
+peer row is the same env with truth perception, so the ratio shows what the TriDAR pipeline (or,
+with ``--perceptions truth flash``, the flash pipeline) costs.
 Vector rows use ``benchmark_vector_step`` (environment steps per second, all environments
 together): ``async`` processes for both perceptions, and for truth the batched
 :class:`~tridar_env.vector.TruthVectorEnv` (``vectorization_mode="vector_entry_point"``).
@@ -26,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vector", type=int, default=2, help="envs in the async vector rows (0: skip)")
     p.add_argument("--batched", type=int, default=64, help="envs in the batched truth row (0: skip)")
     p.add_argument("--repeats", type=int, default=3, help="measurements per row (median, p90)")
+    p.add_argument("--perceptions", nargs="*", default=["truth", "tridar"],
+                   choices=["truth", "truth+noise", "tridar", "flash"],
+                   help="perception modes (truth first: the others' ratio is to it)")
 
 
 def _measure(fn, repeats: int) -> tuple[float, float]:
@@ -51,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     secs = max(round(args.seconds), 1)
     for env_id in args.ids:
         base = None
-        for perception in ("truth", "tridar"):
+        for perception in args.perceptions:
             env = gym.make(env_id, perception=perception)
             med, slow = _measure(lambda env=env: benchmark_step(env, target_duration=secs, seed=0), args.repeats)
             base = med if perception == "truth" else base

@@ -41,7 +41,7 @@ from perception.config import FlashLidarConfig
 from perception.geometry import check_rigid
 from perception.sensing.pointcloud import PointCloud, Subsystem
 from perception.sensing.scan_patterns import angles_to_directions
-from perception.sensing.sensors.raycast import cast_from_sensor, face_planes
+from perception.sensing.sensors.raycast import cast_from_sensor, hit_ranges
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -187,18 +187,9 @@ class FlashLidar:
         o_t = np.broadcast_to((-(R.T @ p)).astype(np.float32), d_t.shape)
         first = np.asarray(target.ray.intersects_first(o_t, d_t), dtype=np.int64)
         local = np.flatnonzero(first >= 0)
-        idx, f = rays[local], first[local]
+        idx = rays[local]
         # From here cast_from_sensor's float64 steps on the same arrays as the full cast's.
-        normals, offsets = face_planes(target)
-        n_s = normals @ R.T
-        off_s = offsets + n_s @ p
-        denom = np.einsum("ij,ij->i", n_s[f], self._dirs[idx])
-        ok = np.abs(denom) > 1e-12
-        t = np.divide(off_s[f], denom, out=np.full(idx.size, np.nan), where=ok)
-        ok &= t > 0
-        if not ok.all():
-            idx, f, t, denom = idx[ok], f[ok], t[ok], denom[ok]
-        return idx, f, t, -denom
+        return hit_ranges(target, T, idx, first[local], self._dirs[idx])
 
     def capture(
         self,

@@ -106,11 +106,24 @@ def cast_from_sensor(
     o_t = np.broadcast_to((-(R.T @ p)).astype(np.float32), d_t.shape)
     first = np.asarray(target.ray.intersects_first(o_t, d_t), dtype=np.int64)
     idx = np.flatnonzero(first >= 0)
-    f = first[idx]
+    return hit_ranges(target, T_sensor_target, idx, first[idx], directions_sensor[idx])
+
+
+def hit_ranges(
+    target: TargetModel, T_sensor_target: FloatArray, idx: IntArray, face: IntArray,
+    directions_sensor: FloatArray,
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """Ranges and incidence of rays ``idx`` (K,) that Embree found hitting faces ``face`` (K,),
+    in float64 from the faces' planes in the sensor frame (the second half of
+    :func:`cast_from_sensor`); ``directions_sensor`` (K, 3) are those rays' directions. Rays
+    parallel to their face or hitting it behind the origin are dropped."""
+    R = T_sensor_target[:3, :3]
+    p = T_sensor_target[:3, 3]
     normals, offsets = face_planes(target)
     n_s = normals @ R.T  # (F, 3) face normals in the sensor frame
     off_s = offsets + n_s @ p
-    denom = np.einsum("ij,ij->i", n_s[f], directions_sensor[idx])
+    f = face
+    denom = np.einsum("ij,ij->i", n_s[f], directions_sensor)
     ok = np.abs(denom) > 1e-12
     t = np.divide(off_s[f], denom, out=np.full(idx.size, np.nan), where=ok)
     ok &= t > 0

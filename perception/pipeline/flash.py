@@ -32,10 +32,8 @@ import numpy.typing as npt
 from perception.config import FlashLidarConfig, MissionConfig
 from perception.estimation.flashtrack import make_flash_tracker
 from perception.numeric import median
-from perception.pipeline.modes import FrameVerdict
-from perception.pipeline.publish import FrameOutput, lever
 from perception.pipeline.state import Mode, TruthScene
-from perception.pipeline.tracking import MIN_REGISTRATION_POINTS, TrackingMode
+from perception.pipeline.tracking import TrackingMode
 from perception.pipeline.tridar import TriDAR
 from perception.sensing.pointcloud import PointCloud
 from perception.sensing.sensors import FlashLidar
@@ -80,15 +78,8 @@ class FlashTrackingMode(TrackingMode):
         tri = self.tri
         assert isinstance(tri, FlashPipeline)
         f = tri.filter
-        cloud = tri.scan(scene, t, None)
-        tri.last_cloud = cloud
-        tri.busy_until = cloud.t_end + tri.pc.tracking_latency_s
-        n = len(cloud)
-        if n < MIN_REGISTRATION_POINTS:
-            reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
-            lost = tri.logic.record(t, FrameVerdict(False, reason))
-            self.after_loss(lost, t)
-            tri.publisher.append(FrameOutput(tri.busy_until, tri.logic.mode, "none", t, n))
+        cloud = self.take(scene, t, None)
+        if cloud is None:
             return
         t_ref = float(cloud.t_start)
         T_pred = f.pose_at(t_ref)
@@ -109,17 +100,8 @@ class FlashTrackingMode(TrackingMode):
         if verdict.good and tri.n_updates > 0:
             sub = tri.subset(cloud)
             tri.twins.monitor(sub.points, sub, res, t_ref, tri.pc.icp)
-        lost = tri.logic.record(t, verdict)
-        self.after_loss(lost, t)
-        if lost:
+        if self.conclude(cloud, cloud.points, t, t_ref, res, verdict):
             tracker.reset()
-        out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
-                          t_ref, n, fitness=res.fitness, filt=tri.filter.copy(), n_updates=tri.n_updates,
-                          ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(cloud.points))
-        bfix = tri.bearing.fix(cloud, t)
-        out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
-        out.bearing_source = bfix.bearing_source
-        tri.publisher.append(out)
 
 
 class FlashPipeline(TriDAR):

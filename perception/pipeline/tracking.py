@@ -134,15 +134,8 @@ class TrackingMode:
         f = tri.filter
         T_start = f.pose_at(t)
         pattern, _ = self.pattern(T_start, t)
-        cloud = tri.scan(scene, t, pattern)
-        tri.last_cloud = cloud
-        tri.busy_until = cloud.t_end + tri.pc.tracking_latency_s
-        n = len(cloud)
-        if n < MIN_REGISTRATION_POINTS:
-            reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
-            lost = tri.logic.record(t, FrameVerdict(False, reason))
-            self.after_loss(lost, t)
-            tri.publisher.append(FrameOutput(tri.busy_until, tri.logic.mode, "none", t, n))
+        cloud = self.take(scene, t, pattern)
+        if cloud is None:
             return
         t_ref = float(0.5 * (cloud.t_start + cloud.t_end))
         pts = deskew(cloud, f, t_ref)
@@ -169,14 +162,39 @@ class TrackingMode:
             verdict = self._update(t_ref, res, expected, verdict)
         if verdict.good and tri.n_updates > 0:
             tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
+        self.conclude(cloud, pts, t, t_ref, res, verdict)
+
+    def take(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud | None:
+        """The frame's cloud, or None after recording a frame with too few points to register
+        (a bad frame towards loss of track, nothing published)."""
+        tri = self.tri
+        cloud = tri.scan(scene, t, pattern)
+        tri.last_cloud = cloud
+        tri.busy_until = cloud.t_end + tri.pc.tracking_latency_s
+        n = len(cloud)
+        if n >= MIN_REGISTRATION_POINTS:
+            return cloud
+        reason = f"{n} points; tracking needs >= {MIN_REGISTRATION_POINTS}"
+        lost = tri.logic.record(t, FrameVerdict(False, reason))
+        self.after_loss(lost, t)
+        tri.publisher.append(FrameOutput(tri.busy_until, tri.logic.mode, "none", t, n))
+        return None
+
+    def conclude(self, cloud: PointCloud, pts: FloatArray, t: float, t_ref: float,
+                 res: RegistrationResult, verdict: FrameVerdict) -> bool:
+        """Record the frame's verdict (loss of track), queue its output (the pose, with the
+        frame's bearing fix); True when the track was lost."""
+        tri = self.tri
         lost = tri.logic.record(t, verdict)
         self.after_loss(lost, t)
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
-                          t_ref, n, fitness=res.fitness, filt=tri.filter.copy(), n_updates=tri.n_updates,
-                          ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts))
+                          t_ref, len(cloud), fitness=res.fitness, filt=tri.filter.copy(),
+                          n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
+        out.bearing_source = bfix.bearing_source
         tri.publisher.append(out)
+        return lost
 
     def _update(self, t_ref: float, res: RegistrationResult, expected: float,
                 verdict: FrameVerdict) -> FrameVerdict:

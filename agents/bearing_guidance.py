@@ -55,6 +55,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
+from tridar_env.dynamics import cw_acceleration
 from tridar_env.env import observation_slices
 from tridar_env.schedule import decision_frames
 
@@ -291,9 +292,7 @@ class BearingGuidance:
         [m/s^2]: ``[3 n^2 x + 2 n y', -2 n x', -n^2 z]`` in LVLH."""
         assert self.cw is not None
         n, R = self.cw
-        r, v = R @ self.s[:3], R @ self.s[3:]
-        a = np.array([3.0 * n * n * r[0] + 2.0 * n * v[1], -2.0 * n * v[0], -n * n * r[2]])
-        return R.T @ a
+        return R.T @ cw_acceleration(n, R @ self.s[:3], R @ self.s[3:])
 
     def applied(self, a_body: npt.ArrayLike) -> None:
         """Record the body acceleration [m/s^2] the returned action commands (after limits)."""

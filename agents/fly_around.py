@@ -40,8 +40,9 @@ from scipy.spatial.transform import Rotation
 
 from agents.lqr import saturate
 from perception.config import MissionConfig
-from tridar_env.dynamics import cw_stm, mean_motion
+from tridar_env.dynamics import cw_acceleration, cw_stm, mean_motion
 from tridar_env.env import make_target, observation_slices
+from tridar_env.world import pointing_frame
 
 _S = observation_slices()
 FloatArray = npt.NDArray[np.float64]
@@ -65,15 +66,6 @@ class FlyAroundGains:
     kp_axis: float = 0.004  # [1/s^2] back onto the port axis while departing
     kd_axis: float = 0.15  # [1/s]
     hold_s: float = 10.0  # [s] without a healthy pose for this long the reference stops
-
-
-def pointing_attitude(r: FloatArray) -> FloatArray:
-    """``R_lvlh_chaser`` of the pointing law (:mod:`tridar_env.world`) at chaser position ``r``."""
-    z = -r / max(float(np.linalg.norm(r)), 1e-9)
-    hz = np.cross([0.0, 0.0, 1.0], z)
-    nx = float(np.linalg.norm(hz))
-    x = hz / nx if nx > 1e-6 else np.array([1.0, 0.0, 0.0])
-    return np.column_stack([x, np.cross(z, x), z])
 
 
 class FlyAroundController:
@@ -157,11 +149,6 @@ class FlyAroundController:
         return healthy
 
     # ------------------------------------------------------------------ law
-    def cw_accel(self, r: FloatArray, v: FloatArray) -> FloatArray:
-        """The CW model's natural acceleration at ``(r, v)``, LVLH [m/s^2]."""
-        n = self.n
-        return np.array([3.0 * n * n * r[0] + 2.0 * n * v[1], -2.0 * n * v[0], -n * n * r[2]])
-
     def accel_lvlh(self) -> FloatArray:
         """The law's LVLH acceleration [m/s^2] at the current estimate."""
         g, fa = self.g, self.fa
@@ -191,7 +178,7 @@ class FlyAroundController:
             a_ref = np.cross([0.0, 0.0, w], v_ref)
             kp, kd = g.omega_n**2, 2.0 * g.zeta * g.omega_n
             a = a_ref + kp * (ref - r) + kd * (v_ref - v)
-        return a - self.cw_accel(r, v)
+        return a - cw_acceleration(self.n, r, v)
 
     def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
         healthy = self.update(obs)
@@ -200,7 +187,7 @@ class FlyAroundController:
             self._a_prev = np.zeros(3)
             return np.zeros(3, dtype=np.float32)
         a = self.accel_lvlh()
-        R_ld = self._from_pose(obs)[2] if healthy else pointing_attitude(self.r)
+        R_ld = self._from_pose(obs)[2] if healthy else pointing_frame(self.r)[0]
         mass = self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
         thrust = saturate(R_ld.T @ a * mass / self.max_thrust)
         self._a_prev = R_ld @ thrust * self.max_thrust / mass

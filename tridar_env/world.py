@@ -24,10 +24,10 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
-from perception.pipeline.filter import EgoMotion
 from perception.geometry import fast_cross, fast_invert, fast_quat_to_matrix, make_T, rotation_z
-from perception.sensing.sensors.motion import RelativeMotion
+from perception.pipeline.filter import EgoMotion
 from perception.pipeline.state import TruthScene
+from perception.sensing.sensors.motion import RelativeMotion
 from perception.targets import TargetModel
 from tridar_env.dynamics import (
     ChaserMass,
@@ -64,6 +64,23 @@ def _frozen(a: FloatArray) -> FloatArray:
     """Mark an array that is shared for a whole episode read-only (mutating it is a bug)."""
     a.setflags(write=False)
     return a
+
+
+_ORBIT_NORMAL = _frozen(np.array([0.0, 0.0, 1.0]))
+
+
+def pointing_frame(r: FloatArray) -> tuple[FloatArray, float]:
+    """``R_lvlh_chaser`` of the pointing law at chaser position ``r`` [m, LVLH] (``r`` not zero)
+    and ``|h x z|``: body +z at the target's centre of mass, body +x along ``h x z`` (``h`` the
+    orbit normal; radial when looking along it, then ``|h x z|`` is taken as 1), +y completing."""
+    rn = max(math.sqrt(float(r @ r)), 1e-12)
+    z = -r / rn
+    hz = fast_cross(_ORBIT_NORMAL, z)
+    nx = math.sqrt(float(hz @ hz))
+    if nx < 1e-6:  # looking along the orbit normal: any roll; keep +x radial
+        hz, nx = np.array([1.0, 0.0, 0.0]), 1.0
+    x = hz / nx
+    return np.column_stack([x, fast_cross(z, x), z]), nx
 
 
 def hull_touches_mesh(target: TargetModel, p_target: FloatArray, hull_radius: float) -> BoolArray:
@@ -369,18 +386,13 @@ class World:
             rn = math.sqrt(float(r @ r))
             if rn < 1e-6:  # at the centre of mass itself: no direction to aim; the docking attitude
                 return self.R_lvlh_target @ self._R_target_dock, np.zeros(3)
-            z = -r / rn
+            R, nx = pointing_frame(r)
+            x, y, z = R[:, 0], R[:, 1], R[:, 2]
             z_dot = -(v - (-z) * float(-z @ v)) / rn
-            h = np.array([0.0, 0.0, 1.0])
-            hz = fast_cross(h, z)
-            nx = math.sqrt(float(hz @ hz))
-            if nx < 1e-6:  # looking along the orbit normal: any roll; keep +x radial
-                hz, nx = np.array([1.0, 0.0, 0.0]), 1.0
-            x = hz / nx
-            y = fast_cross(z, x)
+            h = _ORBIT_NORMAL
             x_dot = (fast_cross(h, z_dot) - x * float(x @ fast_cross(h, z_dot))) / nx
             w = fast_cross(z, z_dot) + z * float(x_dot @ y)
-            return np.column_stack([x, y, z]), w
+            return R, w
 
         return self._cached("pointing", build)
 

@@ -11,7 +11,7 @@ Modules, one job each (every public name is re-exported here):
 * :mod:`.constants`: Earth's ``MU_EARTH``, ``R_EARTH``, ``J2_EARTH`` and standard gravity ``G0``.
 * :mod:`.frames`: :func:`lvlh_frame`, :func:`relative_lvlh_from_eci`,
   :func:`eci_from_relative_lvlh` and the quaternion convention.
-* :mod:`.orbit`: :func:`mean_motion`, :func:`cw_stm`, :class:`CWPropagator` (Clohessy-Wiltshire,
+* :mod:`.orbit`: :func:`mean_motion`, :func:`cw_stm`, :func:`cw_acceleration`, :class:`CWPropagator` (Clohessy-Wiltshire,
   closed form), :func:`gravity_acceleration`, :func:`circular_orbit_state`,
   :class:`NonlinearRelativePropagator` (two-body + optional J2 integrated in ECI).
 * :mod:`.attitude`: :func:`principal_axes`, :func:`spin_with_nutation`,
@@ -36,6 +36,7 @@ from tridar_env.dynamics.orbit import (
     CWPropagator,
     NonlinearRelativePropagator,
     circular_orbit_state,
+    cw_acceleration,
     cw_stm,
     gravity_acceleration,
     mean_motion,
@@ -52,6 +53,7 @@ __all__ = [
     "RigidBodyAttitude",
     "TargetAttitudeModel",
     "circular_orbit_state",
+    "cw_acceleration",
     "cw_stm",
     "eci_from_relative_lvlh",
     "gravity_acceleration",

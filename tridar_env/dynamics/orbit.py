@@ -67,6 +67,14 @@ def mean_motion(altitude_m: float, mu: float = MU_EARTH, r_earth: float = R_EART
     return float(np.sqrt(mu / a**3))
 
 
+def cw_acceleration(n: float, r: npt.ArrayLike, v: npt.ArrayLike) -> FloatArray:
+    """The CW model's natural acceleration at LVLH position ``r`` [m] and velocity ``v`` [m/s]:
+    ``[3 n^2 x + 2 n y', -2 n x', -n^2 z]`` [m/s^2] (what a forced-motion law cancels)."""
+    r = np.asarray(r, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    return np.array([3.0 * n * n * r[0] + 2.0 * n * v[1], -2.0 * n * v[0], -n * n * r[2]])
+
+
 def _one_minus_cos(theta: float) -> float:
     # 2 sin^2(theta/2) has no cancellation for small theta.
     return 2.0 * np.sin(0.5 * theta) ** 2

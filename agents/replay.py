@@ -32,7 +32,7 @@ import numpy.typing as npt
 from perception.config import MissionConfig, flatten_overrides, resolve_config
 from perception.pipeline.state import StateVector, TruthScene
 from perception.sensing.pointcloud import PointCloud
-from tridar_env.recording import set_rng_state, state_from_dict, state_to_dict
+from tridar_env.recording import set_rng_state, state_to_dict
 
 FloatArray = npt.NDArray[np.float64]
 

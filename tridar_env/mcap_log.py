@@ -31,9 +31,9 @@ import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Self
 
-__all__ = ["LoggedMessage", "McapLog", "McapContents", "read_mcap", "refuse_existing", "time_ns"]
+__all__ = ["LoggedMessage", "McapContents", "McapLog", "read_mcap", "refuse_existing", "time_ns"]
 
 #: Topic -> JSON schema name of the JSON channels.
 JSON_TOPICS = {
@@ -49,7 +49,7 @@ METADATA_NAME = "tridar-env"
 
 def time_ns(t: float) -> int:
     """A log time [ns] (>= 0) of ``t`` [s]."""
-    return max(int(round(t * 1e9)), 0)
+    return max(round(t * 1e9), 0)
 
 
 def refuse_existing(path: str | Path, force: bool) -> Path:
@@ -97,7 +97,7 @@ class McapLog:
         self._seq: dict[str, int] = {}
         self.closed = False
 
-    def __enter__(self) -> McapLog:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

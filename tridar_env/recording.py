@@ -112,7 +112,7 @@ def _scan_region(pattern: Any, mode: str, t: float) -> dict[str, Any]:
     out: dict[str, Any] = {"t": t, "mode": mode, "pattern": str(getattr(pattern, "name", ""))}
     if az is not None and el is not None and len(az):
         out.update(az_min=float(np.min(az)), az_max=float(np.max(az)), el_min=float(np.min(el)),
-                   el_max=float(np.max(el)), samples=int(len(az)))
+                   el_max=float(np.max(el)), samples=len(az))
     return out
 
 

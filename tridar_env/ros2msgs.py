@@ -104,7 +104,7 @@ for _n, _d in POINT_FIELDS:
 
 def stamp(t: float) -> dict[str, int]:
     """``builtin_interfaces/Time`` of ``t`` [s] (negative times clamp to 0)."""
-    ns = max(int(round(t * 1e9)), 0)
+    ns = max(round(t * 1e9), 0)
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
 

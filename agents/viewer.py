@@ -49,7 +49,7 @@ _SUBSYSTEM_RGB = np.array([[40, 110, 255], [230, 50, 40], [150, 60, 200]], dtype
 _MODES = {"bearing": 0, "search": 1, "tracking": 2}
 
 
-def _rerun() -> Any:
+def require_rerun() -> Any:
     try:
         import rerun as rr
     except ImportError as exc:
@@ -85,7 +85,7 @@ def log_recording(path: str | Path, rec: Any, *, config: MissionConfig | None = 
         rec: a ``rerun.RecordingStream``.
         config: the mission config for the target mesh (default: the recorded one).
     """
-    rr = _rerun()
+    rr = require_rerun()
     from tridar_env.env import make_target
     from tridar_env.mcap_log import CONFIG_ATTACHMENT, read_mcap
     from tridar_env.ros2msgs import cloud_arrays
@@ -156,7 +156,7 @@ def log_recording(path: str | Path, rec: Any, *, config: MissionConfig | None = 
 
 def view(path: str | Path, save: str | Path | None = None, *, force: bool = False) -> dict[str, int]:
     """Show a recording in the rerun viewer, or write it to ``save`` (an ``.rrd``) without one."""
-    rr = _rerun()
+    rr = require_rerun()
     from tridar_env.mcap_log import refuse_existing
 
     out = refuse_existing(save, force) if save is not None else None

@@ -10,6 +10,7 @@ and controller. Both exit 0 when the chaser docked, 1 otherwise.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,11 @@ def _common(p: argparse.ArgumentParser, controller_default: str, out_default: st
                    help="config override, nested with '.' or '__' (env.initial.range_m=20); "
                         "repeatable; VALUE is parsed as YAML")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--record", type=Path, default=None, metavar="FILE.mcap",
+                   help="record the run to MCAP (ROS 2 messages; tridar-env replay / view read it)")
+    p.add_argument("--force", action="store_true", help="replace an existing --record file")
+    p.add_argument("--view", action="store_true",
+                   help="open the rerun 3D viewer on the run when it ends (the 'view' extra)")
 
 
 @command("demo", "fly the final approach with the glideslope controller and write a report folder")
@@ -116,6 +122,7 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
     stamped = args.out is None
     out = args.out or Path("reports") / f"{prefix}-{time.strftime('%Y%m%d-%H%M%S')}"
     check_folder(out, REPORT_KIND, new=stamped)
+    mcap_path = _record_path(args)
     try:
         env = make("rgb_array" if render_every else None)
     except ImportError as exc:
@@ -123,6 +130,10 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
             f"cannot build the environment ({exc}); the full TriDAR pipeline may not be installed "
             "yet: try --perception truth"
         ) from None
+    if mcap_path is not None:
+        from tridar_env.recording import RecordMCAP
+
+        env = RecordMCAP(env, mcap_path, force=args.force or args.record is None, label=env_name)
     cfg = env.unwrapped.cfg
     name = args.controller or args.controller_default
     if name is None:
@@ -143,4 +154,30 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
         env.close()
     write_report(record, out, video=bool(render_every), fps=args.fps, new=stamped)
     print(format_summary(summary_dict(record), out))
+    if args.record is not None:
+        print(f"recording: {args.record} (tridar-env view / tridar-env replay)")
+    if args.view and mcap_path is not None:
+        from agents.viewer import view
+
+        try:
+            view(mcap_path)
+        finally:
+            if args.record is None:
+                mcap_path.unlink(missing_ok=True)
     return 0 if record.result.docked else 1
+
+
+def _record_path(args: argparse.Namespace) -> Path | None:
+    """Where the run is recorded: ``--record``, or for ``--view`` alone a temporary file."""
+    if args.record is not None:
+        from tridar_env.mcap_log import refuse_existing
+
+        return refuse_existing(args.record, args.force)
+    if args.view:
+        import tempfile
+
+        from agents.viewer import require_rerun
+
+        require_rerun()  # the 'view' extra is there, before the run rather than after it
+        return Path(tempfile.gettempdir()) / f"tridar-view-{os.getpid()}-{time.time_ns()}.mcap"
+    return None

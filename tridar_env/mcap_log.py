@@ -78,7 +78,7 @@ class McapLog:
         chunk_size: bytes per compressed chunk.
     """
 
-    def __init__(self, path: str | Path, *, force: bool = False, chunk_size: int = 4 * 1024 * 1024) -> None:
+    def __init__(self, path: str | Path, *, force: bool = False, chunk_size: int = 1024 * 1024) -> None:
         try:
             from mcap.writer import CompressionType
             from mcap_ros2.writer import Writer

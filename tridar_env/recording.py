@@ -16,7 +16,8 @@ gets bitwise the same state vectors. The tap does not touch the simulation: it w
 pipeline's bound methods on the instance and passes every argument and result through.
 
 Recording costs one copy of each cloud into a packed buffer, a few small JSON messages per frame
-and ZSTD compression of 4 MB chunks (``tridar-env bench record`` measures it).
+and ZSTD compression of 1 MB chunks (a file cut short loses at most its last chunk);
+``tridar-env bench record`` measures it.
 """
 
 from __future__ import annotations

@@ -65,13 +65,17 @@ __all__ = [
     "SB3Policy",
     "TrainResult",
     "TrainingConfig",
+    "batch_refusal",
+    "build_model",
     "collect_demonstrations",
     "evaluate",
     "load_policy",
     "load_training",
+    "make_training_env",
     "pretrain_policy",
     "train",
     "validate_training",
+    "vec_env_kind",
 ]
 
 #: Marker kind of a training run folder (:mod:`agents.outputs`).
@@ -114,6 +118,11 @@ def validate_training(cfg: TrainingConfig, source: str = "training config") -> M
     except ConfigError as exc:
         detail = "; ".join(line.strip() for line in str(exc).splitlines()[1:]) or str(exc)
         fail(f"config gives an invalid mission: {detail}")
+    if cfg.vec_env == "batched":
+        refusal = batch_refusal(mission)
+        if refusal is not None:
+            fail(f"vec_env='batched' but {refusal.split(' (use gymnasium')[0]}; expected vec_env "
+                 "'auto', 'subproc' or 'dummy' for this run")
     if cfg.pretrain is not None:
         from agents.controllers import make_controller
 
@@ -142,6 +151,7 @@ class TrainResult:
     Attributes:
         out_dir: run folder; ``model_path``, ``stats_path``: the saved policy and statistics.
         timesteps: steps trained; ``wall_time_s``: time spent; ``interrupted``: Ctrl-C.
+        vec_env: the vector env it ran on (``batched``, ``subproc`` or ``dummy``).
     """
 
     out_dir: Path
@@ -150,16 +160,70 @@ class TrainResult:
     timesteps: int
     wall_time_s: float
     interrupted: bool = False
+    vec_env: str = ""
 
 
-def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig) -> Any:
+def batch_refusal(mission: MissionConfig) -> str | None:
+    """Why the training env of ``mission`` cannot be batched (None: it can).
+
+    The batched adapter replaces ``gymnasium.make(id)`` (the env in its ``TimeLimit``, no other
+    wrapper) by ``TruthVectorEnv``; that covers truth and truth+noise perception, CW dynamics and
+    the ideal chaser attitude law, and its constructor names whatever else it does not batch.
+    """
+    from tridar_env.vector import TruthVectorEnv
+
+    try:
+        TruthVectorEnv(1, config=mission).close()
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def vec_env_kind(cfg: TrainingConfig, mission: MissionConfig) -> str:
+    """The vector env a run uses: ``cfg.vec_env``, with ``auto`` resolved (``batched`` where
+    :func:`batch_refusal` allows it, else ``subproc``; ``dummy`` for one env)."""
+    if cfg.vec_env == "auto":
+        if batch_refusal(mission) is None:
+            return "batched"
+        return "subproc" if cfg.n_envs > 1 else "dummy"
+    return "dummy" if cfg.vec_env == "subproc" and cfg.n_envs == 1 else cfg.vec_env
+
+
+def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig, kind: str) -> Any:
+    """SB3's vector env of the run (``kind`` from :func:`vec_env_kind`), seeded ``cfg.seed + k``."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     env_id, kwargs = env_args(cfg, mission)
-    vec_cls = SubprocVecEnv if cfg.vec_env == "subproc" and cfg.n_envs > 1 else DummyVecEnv
+    if kind == "batched":
+        from agents.vec_adapter import make_batched_vec_env
+
+        return make_batched_vec_env(env_id, cfg.n_envs, seed=cfg.seed, env_kwargs=kwargs)
+    vec_cls = SubprocVecEnv if kind == "subproc" else DummyVecEnv
     return make_vec_env(env_id, n_envs=cfg.n_envs, seed=cfg.seed, vec_env_cls=vec_cls,
                         env_kwargs=kwargs)
+
+
+def make_training_env(cfg: TrainingConfig, mission: MissionConfig) -> tuple[Any, str]:
+    """The run's vector env (not yet normalised) and its kind (:func:`vec_env_kind`)."""
+    kind = vec_env_kind(cfg, mission)
+    return _make_vec_env(cfg, mission, kind), kind
+
+
+def build_model(cfg: TrainingConfig, venv: Any, tensorboard_log: str | None = None) -> tuple[Any, Any]:
+    """``(VecNormalize over venv, the untrained SB3 model on it)`` as ``cfg`` describes them."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    gamma = float(cfg.hyperparams.get("gamma", 0.99))
+    vec = VecNormalize(
+        venv, norm_obs=cfg.normalize.obs, norm_reward=cfg.normalize.reward,
+        clip_obs=cfg.normalize.clip_obs, clip_reward=cfg.normalize.clip_reward, gamma=gamma,
+    )
+    model = algo_class(cfg.algo)(
+        "MlpPolicy", vec, seed=cfg.seed, verbose=0, tensorboard_log=tensorboard_log,
+        policy_kwargs=policy_kwargs(cfg) or None, device=cfg.device, **cfg.hyperparams,
+    )
+    return vec, model
 
 
 def _progress_bar_available() -> bool:
@@ -271,7 +335,6 @@ def train(
     """
     import torch
     from stable_baselines3.common.callbacks import CallbackList
-    from stable_baselines3.common.vec_env import VecNormalize
 
     mission = validate_training(cfg)
     out = Path(out_dir)
@@ -279,19 +342,12 @@ def train(
     if (out / MODEL_FILE).exists() and not force:
         raise ValueError(f"{out / MODEL_FILE} exists; pass --force to replace it or choose another --out")
     torch.set_num_threads(cfg.torch_threads)
-    venv = _make_vec_env(cfg, mission)
+    venv, kind = make_training_env(cfg, mission)
     with contextlib.ExitStack() as stack:
         stack.callback(venv.close)
         gamma = float(cfg.hyperparams.get("gamma", 0.99))
-        vec = VecNormalize(
-            venv, norm_obs=cfg.normalize.obs, norm_reward=cfg.normalize.reward,
-            clip_obs=cfg.normalize.clip_obs, clip_reward=cfg.normalize.clip_reward, gamma=gamma,
-        )
         tb = str(out / "tb") if importlib.util.find_spec("tensorboard") is not None else None
-        model = algo_class(cfg.algo)(
-            "MlpPolicy", vec, seed=cfg.seed, verbose=0, tensorboard_log=tb,
-            policy_kwargs=policy_kwargs(cfg) or None, device=cfg.device, **cfg.hyperparams,
-        )
+        vec, model = build_model(cfg, venv, tensorboard_log=tb)
         pretrain_stats = None
         if cfg.pretrain is not None:
             demos = collect_demonstrations(cfg, mission, progress=progress)
@@ -326,4 +382,4 @@ def train(
         _save_model(model, out / MODEL_FILE)
         save_stats(vec, out / STATS_FILE)
         return TrainResult(out, out / MODEL_FILE, out / STATS_FILE, int(model.num_timesteps), wall,
-                           interrupted)
+                           interrupted, kind)

@@ -90,7 +90,11 @@ class TrainingConfig(BaseModel):
         train_config: overrides applied on top of ``config`` only while training (e.g. a wider
             start distribution as a curriculum); evaluation flies the mission without them.
         total_timesteps: environment steps over all envs.
-        n_envs: parallel envs; ``vec_env`` ``subproc`` (one process each) or ``dummy``.
+        n_envs: parallel envs. ``vec_env``: ``batched`` steps them all as arrays in this process
+            (:class:`agents.vec_adapter.BatchedVecEnv` over ``TruthVectorEnv``: truth and
+            truth+noise perception, CW dynamics, the ideal chaser attitude law), ``subproc`` one
+            process each, ``dummy`` one after the other in this process; ``auto`` is ``batched``
+            where the run allows it and ``subproc`` (``dummy`` for one env) elsewhere.
         seed: seeds SB3, torch and the envs (env ``k`` gets ``seed + k``).
         normalize: VecNormalize settings.
         checkpoint_every_steps: save model + statistics every this many total steps (None: off).
@@ -111,7 +115,7 @@ class TrainingConfig(BaseModel):
     train_config: dict[str, Any] = Field(default_factory=dict)
     total_timesteps: Annotated[int, Field(ge=1)] = 1_000_000
     n_envs: Annotated[int, Field(ge=1, le=256)] = 2
-    vec_env: Literal["subproc", "dummy"] = "subproc"
+    vec_env: Literal["auto", "batched", "subproc", "dummy"] = "auto"
     seed: Annotated[int, Field(ge=0)] = 0
     normalize: NormalizeConfig = NormalizeConfig()
     checkpoint_every_steps: Annotated[int, Field(ge=1)] | None = 100_000

@@ -234,3 +234,31 @@ def test_batched_on_a_run_it_cannot_batch_is_one_clear_error() -> None:
         match=r"vec_env='batched' but .*env.perception='tridar'.*expected vec_env 'auto'",
     ):
         validate_training(cfg)
+
+
+def test_bench_train_prints_steps_per_second_and_the_ratio(tmp_path, capsys) -> None:
+    import yaml
+
+    from agents.cli import main
+
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump({**TINY, "n_envs": 2}))
+    code = main(
+        [
+            "bench",
+            "train",
+            "--config",
+            str(path),
+            "--steps",
+            "64",
+            "--repeats",
+            "1",
+            "--vec-envs",
+            "dummy",
+            "batched",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "steps_per_s_median" in out and "steps_per_s_p90" in out and "ratio_to_dummy" in out
+    assert "| batched" in out and "goal: batched >= 3x" in out

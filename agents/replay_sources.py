@@ -326,7 +326,10 @@ def load_truth_csv(path: str | Path, warn: Callable[[str], None] = _say) -> Trut
                 Ts.append(T_from_quat_pos(q / nq, np.array(vals[1:4])))
                 ts.append(vals[0])
             except (KeyError, TypeError, ValueError) as exc:
-                line = f"{path}: line {i}: {exc}; expected t,x,y,z,qw,qx,qy,qz; row skipped"
-                problems.append(line)
-                warn(line)
+                problems.append(f"line {i}: {exc}")
+    if problems:
+        line = (f"{path}: {len(problems)} rows skipped (first: {problems[0]}); expected columns "
+                "t,x,y,z,qw,qx,qy,qz")
+        warn(line)
+        problems = [line]
     return Truth(np.array(ts), np.array(Ts).reshape(-1, 4, 4), problems)

@@ -11,13 +11,13 @@ import pytest
 
 pytest.importorskip("mcap_ros2")
 
-from mcap.reader import make_reader  # noqa: E402
-from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
-from agents.replay import load_recording, replay  # noqa: E402
-from perception.config import MissionConfig  # noqa: E402
-from tests.recorded_run import record_run  # noqa: E402
-from tridar_env.recording import RecordMCAP, state_to_dict  # noqa: E402
+from agents.replay import load_recording, replay
+from perception.config import MissionConfig
+from tests.recorded_run import record_run
+from tridar_env.recording import RecordMCAP, state_to_dict
 
 ROS2_SCHEMAS = {
     "/tridar/points": "sensor_msgs/msg/PointCloud2",

@@ -16,12 +16,13 @@ gets bitwise the same state vectors. The tap does not touch the simulation: it w
 pipeline's bound methods on the instance and passes every argument and result through.
 
 Recording costs one copy of each cloud into a packed buffer, a few small JSON messages per frame
-and ZSTD compression of 1 MB chunks (a file cut short loses at most its last chunk);
+and LZ4 compression of 1 MB chunks (a file cut short loses at most its last chunk);
 ``tridar-env bench record`` measures it.
 """
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import math
 from pathlib import Path
@@ -68,12 +69,20 @@ def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
     rng.bit_generator.state = _hex_as_ints(state)
 
 
+_VALID_FIELDS = tuple(f.name for f in dataclasses.fields(Validity))
+
+
+def _valid_dict(v: Validity) -> dict[str, bool]:
+    return {name: getattr(v, name) for name in _VALID_FIELDS}  # dataclasses.asdict deep-copies
+
+
 def state_to_dict(sv: StateVector) -> dict[str, Any]:
-    """Every field of a ``StateVector`` as JSON-safe data (exact: floats round-trip)."""
+    """Every field of a ``StateVector`` as JSON-safe data (exact: floats round-trip; the (12, 12)
+    covariance is base64 of its little-endian float64 bytes, a sixth of the cost of 144 numbers)."""
     d: dict[str, Any] = {
         "t": sv.t, "mode": int(sv.mode), "mode_name": Mode(sv.mode).name.lower(),
-        "valid": dataclasses.asdict(sv.valid),
-        "covariance": sv.covariance.reshape(-1).tolist(),
+        "valid": _valid_dict(sv.valid),
+        "covariance_f8le_b64": base64.b64encode(sv.covariance.astype("<f8").tobytes()).decode(),
     }
     for name in _ARRAYS:
         d[name] = getattr(sv, name).tolist()
@@ -89,7 +98,7 @@ def state_from_dict(d: dict[str, Any]) -> StateVector:
     kw = {name: np.array(d[name], dtype=np.float64) for name in _ARRAYS}
     return StateVector(
         t=float(d["t"]), mode=Mode(int(d["mode"])), valid=Validity(**d["valid"]),
-        covariance=np.array(d["covariance"], dtype=np.float64).reshape(12, 12),
+        covariance=np.frombuffer(base64.b64decode(d["covariance_f8le_b64"]), dtype="<f8").reshape(12, 12),
         range=float(d["range"]), range_rate=float(d["range_rate"]), fitness=float(d["fitness"]),
         n_points=int(d["n_points"]), latency=float(d["latency"]),
         protection_level=float(d["protection_level"]), alert_limit=float(d["alert_limit"]),
@@ -100,7 +109,7 @@ def state_from_dict(d: dict[str, Any]) -> StateVector:
 def _state_summary(sv: StateVector) -> dict[str, Any]:
     """The small, plottable view of a state (``/tridar/state``)."""
     return {
-        "t": sv.t, "mode": Mode(sv.mode).name.lower(), "valid": dataclasses.asdict(sv.valid),
+        "t": sv.t, "mode": Mode(sv.mode).name.lower(), "valid": _valid_dict(sv.valid),
         "pose_valid": sv.valid.pose, "protection_level": sv.protection_level,
         "alert_limit": sv.alert_limit, "range": sv.range, "range_rate": sv.range_rate,
         "fitness": sv.fitness, "n_points": sv.n_points, "latency": sv.latency,
@@ -230,6 +239,7 @@ class RecordMCAP(gym.Wrapper):
         path: the ``.mcap`` file to create; an existing file is refused unless ``force``.
         force: replace an existing file.
         label: what the run was (an env id, a mission file), stored in the metadata.
+        compression: of the file's chunks: ``lz4``, ``zstd`` or ``none`` (:class:`McapLog`).
 
     Example:
         >>> import gymnasium as gym, tridar_env
@@ -237,11 +247,12 @@ class RecordMCAP(gym.Wrapper):
         >>> env = RecordMCAP(gym.make("TriDAR/FinalApproach-v0"), "run.mcap")  # doctest: +SKIP
     """
 
-    def __init__(self, env: gym.Env, path: str | Path, *, force: bool = False, label: str = "") -> None:
+    def __init__(self, env: gym.Env, path: str | Path, *, force: bool = False, label: str = "",
+                 compression: str = "lz4") -> None:
         super().__init__(env)
         u = env.unwrapped
         cfg = u.cfg
-        self.log = McapLog(path, force=force)
+        self.log = McapLog(path, force=force, compression=compression)
         self.path = self.log.path
         from importlib.metadata import PackageNotFoundError, version
 
@@ -290,6 +301,7 @@ class RecordMCAP(gym.Wrapper):
         t = float(info.get("t", getattr(u.world, "t", 0.0)))
         tns = self._clock(t)
         w = u.world
+        # World state and frames are finite (the world checks them); only the extras may be NaN.
         msg = {
             "episode": self._episode, "step": self._steps, "t": t,
             "action": None if action is None else _num(np.asarray(action, dtype=np.float64)),
@@ -297,11 +309,11 @@ class RecordMCAP(gym.Wrapper):
             "reward_terms": {k[7:]: _num(v) for k, v in info.items() if k.startswith("reward_")},
             "terminated": bool(terminated), "truncated": bool(truncated),
             "termination": info.get("termination", ""), "mode": info.get("mode", ""),
-            "r_lvlh": _num(w.state[:3]), "v_lvlh": _num(w.state[3:]),
-            "T_lvlh_sensor": _num(w.T_lvlh_sensor), "T_lvlh_target": _num(w.T_lvlh_target),
-            "pos_err_m": _num(info.get("estimate_position_error_m", float("nan"))),
-            "att_err_deg": _num(info.get("estimate_attitude_error_deg", float("nan"))),
-            "propellant_kg": _num(info.get("propellant_kg", float("nan"))),
+            "r_lvlh": w.state[:3].tolist(), "v_lvlh": w.state[3:].tolist(),
+            "T_lvlh_sensor": w.T_lvlh_sensor.tolist(), "T_lvlh_target": w.T_lvlh_target.tolist(),
+            "pos_err_m": _num(info.get("estimate_position_error_m", math.nan)),
+            "att_err_deg": _num(info.get("estimate_attitude_error_deg", math.nan)),
+            "propellant_kg": _num(info.get("propellant_kg", math.nan)),
         }
         self.log.json("/env/step", msg, tns)
         if self.tap is None and u.state_vector is not None:  # truth perception: one state per step

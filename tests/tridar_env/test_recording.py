@@ -156,3 +156,25 @@ def test_truth_perception_records_states_without_clouds(tmp_path: Path) -> None:
     assert "/tridar/points" not in topics and len(c.topic("/env/step")) == 4
     with pytest.raises(ValueError, match="no pipeline frames"):
         load_recording(path)
+
+
+def test_cdr_encoders_match_mcap_ros2_support() -> None:
+    """The direct CDR encoders write the bytes mcap-ros2-support's generic encoder writes."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    from tridar_env import ros2msgs as m
+
+    rng = np.random.default_rng(0)
+    n = 9
+    msgs = {
+        "sensor_msgs/msg/PointCloud2": m.pointcloud2(
+            rng.random((n, 3)), rng.random(n), rng.random(n), rng.random(n), rng.random((n, 3)),
+            rng.integers(0, 2, n).astype(np.int8), rng.random(n) < 0.2, 12.345678901),
+        "geometry_msgs/msg/PoseStamped": m.pose_stamped(3.2, rng.random(3), np.array([0.5, 0.5, 0.5, 0.5])),
+        "geometry_msgs/msg/PoseWithCovarianceStamped": m.pose_with_covariance_stamped(
+            7.0, rng.random(3), np.array([1.0, 0.0, 0.0, 0.0]), rng.random((12, 12)), frame_id="sensor_x"),
+    }
+    assert set(msgs) == set(m.ENCODERS)
+    for name, msg in msgs.items():
+        reference = serialize_dynamic(name, m.MSG_TEXT[name])[name]
+        assert m.ENCODERS[name](msg) == reference(msg), name

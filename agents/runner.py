@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 #: Steps of the per-run estimation-error trace kept for the error-vs-range plot.
 TRACE_POINTS = 100
+#: Environment variable naming the folder where each run records ``run-<index>.mcap``
+#: (``tridar-env campaign --record``; workers of the embedded cluster inherit it).
+RECORD_DIR_ENV = "TRIDAR_ENV_RECORD_DIR"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -120,6 +123,12 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
     head = {"index": spec.index, "env_seed": spec.env_seed}
     try:
         env = make_env(spec.env_id, spec.perception, spec.overrides, spec.mission)
+        record_dir = os.environ.get(RECORD_DIR_ENV)
+        if record_dir:  # campaign --record: this run's MCAP (a file of that folder's, replaced)
+            from tridar_env.recording import RecordMCAP
+
+            env = RecordMCAP(env, os.path.join(record_dir, f"run-{spec.index:06d}.mcap"), force=True,
+                             label=f"{spec.env_id} run {spec.index} seed {spec.env_seed}")
         try:
             ctrl = make_controller(spec.controller, env.unwrapped.cfg)
             res = run_episode(env, ctrl, spec.env_seed, keep_log=True, max_steps=spec.max_steps)

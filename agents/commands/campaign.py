@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 from agents.cli import command
@@ -32,6 +34,9 @@ def add(p: argparse.ArgumentParser) -> None:
                    help="rerun runs whose stored outcome is 'error'")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record every run to DIR/run-<index>.mcap (a new or empty folder, or one an "
+                        "earlier --record made; with --serial or the embedded cluster)")
     p.set_defaults(handler=run)
 
 
@@ -48,11 +53,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--workers={args.workers}; expected >= 1")
     cfg = load_campaign(args.config, **overrides)
     out = args.out or Path("runs") / "campaigns" / cfg.name
-    res = run_campaign(
-        cfg, out, scheduler=args.scheduler, workers=args.workers, serial=args.serial,
-        fresh=args.fresh, retry_errors=args.retry_errors, progress=not args.no_progress,
-        plots=not args.no_plots,
-    )
+    with _recording(args.record, args.scheduler):
+        res = run_campaign(
+            cfg, out, scheduler=args.scheduler, workers=args.workers, serial=args.serial,
+            fresh=args.fresh, retry_errors=args.retry_errors, progress=not args.no_progress,
+            plots=not args.no_plots,
+        )
     resumed = cfg.runs - len(res.ran) - res.failed_to_execute
     print(res.summary_table(
         f"campaign {cfg.name}: {len(res.ran)} runs now, {resumed} resumed from {out}"
@@ -63,3 +69,35 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(f"results: {out / 'results.parquet'}; plots: {', '.join(p.name for p in res.plots) or '-'}")
     return 0
+
+
+_RECORD_MARKER = ".tridar-env-recordings"
+
+
+@contextlib.contextmanager
+def _recording(folder: Path | None, scheduler: str | None) -> Iterator[None]:
+    """While inside, every run records into ``folder`` (None: no recording): the folder is
+    claimed and named in an environment variable that this process's workers inherit; a folder
+    tridar-env did not make is refused unless empty."""
+    import os
+
+    from agents.runner import RECORD_DIR_ENV
+
+    if folder is None:
+        yield
+        return
+    if scheduler:
+        raise ValueError("--record writes on this machine; use it with --serial or the embedded "
+                         "cluster, not --scheduler")
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"--record {folder}: a file; expected a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not (folder / _RECORD_MARKER).exists():
+        raise ValueError(f"--record {folder}: a folder tridar-env did not make and not empty; "
+                         "expected a new or empty folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / _RECORD_MARKER).touch()
+    os.environ[RECORD_DIR_ENV] = str(folder.resolve())
+    try:
+        yield
+    finally:
+        os.environ.pop(RECORD_DIR_ENV, None)

@@ -162,3 +162,37 @@ def test_bad_points_are_dropped_with_one_line(scans) -> None:
     c = to_cloud(frame, None, warn=lines.append)
     assert len(c) == len(xyz) - 6
     assert lines == [f"lab/frame0.pcd: 6 of {len(xyz)} points not finite or at the origin; dropped"]
+
+
+def test_demo_record_then_replay_is_bitwise(tmp_path: Path, capsys) -> None:
+    rec = tmp_path / "demo.mcap"
+    code = main(["demo", "--max-steps", "20", "--no-video", "--no-progress", "--out",
+                 str(tmp_path / "report"), "--record", str(rec)])
+    assert code in (0, 1) and rec.is_file()
+    capsys.readouterr()
+    assert main(["replay", str(rec), "--plot", str(tmp_path / "e.png")]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if "bitwise equal" in ln)
+    n, m = line.rsplit(": ", 1)[1].split(" of ")
+    assert int(n) == int(m) > 0
+    assert (tmp_path / "e.png").stat().st_size > 0
+
+
+def test_campaign_records_every_run(tmp_path: Path) -> None:
+    import os
+
+    from agents.runner import RECORD_DIR_ENV
+
+    rec = tmp_path / "recs"
+    args = ["campaign", "final_approach_truth", "--serial", "--runs", "2", "--max-steps", "3",
+            "--out", str(tmp_path / "camp"), "--record", str(rec), "--no-plots", "--no-progress"]
+    assert main(args) == 0
+    assert sorted(p.name for p in rec.glob("*.mcap")) == ["run-000000.mcap", "run-000001.mcap"]
+    assert RECORD_DIR_ENV not in os.environ
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    args[args.index(str(rec))] = str(foreign)
+    args[args.index(str(tmp_path / "camp"))] = str(tmp_path / "camp2")
+    assert main(args) == 2
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"]

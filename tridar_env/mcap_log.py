@@ -43,6 +43,30 @@ JSON_TOPICS = {
     "/tridar/event": "tridar/Event",
     "/env/step": "tridar/EnvStep",
 }
+_NUM, _STR, _BOOL = {"type": "number"}, {"type": "string"}, {"type": "boolean"}
+_VEC = {"type": "array", "items": _NUM}
+_OPT_NUM = {"type": ["number", "null"]}
+#: Schema name -> JSON-schema properties (what Foxglove offers for plots and message paths).
+JSON_PROPERTIES: dict[str, dict[str, Any]] = {
+    "tridar/State": {
+        "t": _NUM, "mode": _STR, "pose_valid": _BOOL, "protection_level": _NUM, "alert_limit": _NUM,
+        "range": _NUM, "range_rate": _NUM, "fitness": _NUM, "n_points": _NUM, "latency": _NUM,
+        "bearing": _VEC, "bearing_source": _STR,
+        "valid": {"type": "object", "additionalProperties": _BOOL},
+    },
+    "tridar/ScanRegion": {"t": _NUM, "mode": _STR, "pattern": _STR, "az_min": _NUM, "az_max": _NUM,
+                          "el_min": _NUM, "el_max": _NUM, "samples": _NUM},
+    "tridar/Frame": {"t": _NUM, "rng": {"type": "object"}, "scans": {"type": "array"},
+                     "ego": {"type": "object"}, "truth": {"type": "object"}, "state": {"type": "object"}},
+    "tridar/Event": {"kind": _STR, "t": _NUM},
+    "tridar/EnvStep": {
+        "episode": _NUM, "step": _NUM, "t": _NUM, "action": {"type": ["array", "null"], "items": _NUM},
+        "reward": _OPT_NUM, "reward_terms": {"type": "object", "additionalProperties": _OPT_NUM},
+        "terminated": _BOOL, "truncated": _BOOL, "termination": _STR, "mode": _STR,
+        "r_lvlh": _VEC, "v_lvlh": _VEC, "pos_err_m": _OPT_NUM, "att_err_deg": _OPT_NUM,
+        "propellant_kg": _OPT_NUM,
+    },
+}
 CONFIG_ATTACHMENT = "mission_config.json"
 METADATA_NAME = "tridar-env"
 
@@ -139,7 +163,8 @@ class McapLog:
         ch = self._json_channels.get(topic)
         if ch is None:
             name = JSON_TOPICS[topic]
-            schema = json.dumps({"title": name, "type": "object"}).encode()
+            schema = json.dumps({"title": name, "type": "object",
+                                 "properties": JSON_PROPERTIES.get(name, {})}).encode()
             sid = self._raw.register_schema(name, "jsonschema", schema)
             ch = self._json_channels[topic] = self._raw.register_channel(topic, "json", sid)
         data = json.dumps(obj, separators=(",", ":"), default=_json_default, allow_nan=False).encode()

@@ -45,6 +45,9 @@ def test_mcap_reads_back_with_ros2_schemas(run) -> None:
         for topic in ("/tridar/state", "/tridar/scan_region", "/env/step"):
             ch, schema = by_topic[topic]
             assert ch.message_encoding == "json" and schema.encoding == "jsonschema"
+            assert json.loads(schema.data)["type"] == "object"
+        state_schema = json.loads(by_topic["/tridar/state"][1].data)
+        assert {"mode", "pose_valid", "protection_level"} <= set(state_schema["properties"])
         clouds = [m for _, ch, _, m in reader.iter_decoded_messages(topics=["/tridar/points"])]
     assert clouds, "no PointCloud2 messages"
     last = clouds[-1]

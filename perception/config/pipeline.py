@@ -85,6 +85,18 @@ class IntegrityConfig(StrictModel):
         "fraction of the range as position sigma (PAH's basin, not ICP's noise: 0.3-0.8 m at 83 m "
         "on the ISS-like port); its velocity then comes from the frames that follow (0: off)"
     )
+    min_valid_fitness: UnitFloat = Field(
+        0.0, description="a frame whose registration explains less than this fraction of its "
+        "points publishes its pose degraded, and a track lost after such frames is not "
+        "continued (PAH starts over): on an exact model a sound pose explains nearly every "
+        "return, and a track sliding along a truss's repeated bays fell to 0.6-0.9 while its "
+        "filter still claimed decimetres (0: off)"
+    )
+    slide_hold_s: Annotated[Float, Field(ge=0, le=1e6)] = Field(
+        30.0, description="a slide the monitor found stays on the registrations this long [s] "
+        "after the last probe that found it, whatever the probes between say (a weak aspect's "
+        "probes flicker)"
+    )
     slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
         0.001, description="slide probe's push: max(3 sigma, this * range) [m]"
     )

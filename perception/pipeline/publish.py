@@ -161,4 +161,6 @@ class Publisher:
         kw.update(protection_level=pl, alert_limit=al)
         # A track is trusted once confirmed by a few accepted frames (its rates estimated; an
         # acquisition's transient is not yet inside the filter's covariance).
-        valid_kw["degraded"] = pl > al or out.n_updates < ig.confirm_frames
+        # A registration that leaves many returns unexplained is not a pose to close in on.
+        valid_kw["degraded"] = (pl > al or out.n_updates < ig.confirm_frames
+                                or out.fitness < ig.min_valid_fitness)

@@ -146,6 +146,7 @@ class SearchMode:
         tri.lost_track = None
         tri.tracking.clear_rejects()
         tri.n_updates = 1
+        tri.accepted_fitness = res.fitness
         # PAH's answer may be a twin of the truth until the scans rule the twins out; a seed or
         # the lost track's prediction already has (the track's continuity carries that on).
         tri.twins.start(all_open=from_pah)

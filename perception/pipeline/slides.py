@@ -12,11 +12,27 @@ The probe (``integrity.slide_check_period_s``, and on every new track's first
 ``confirm_frames`` registrations): ICP from the answer pushed by ``d = max(3 sigma,
 slide_probe_fraction * range)`` both ways along the largest-variance axis ``e`` of its position
 covariance. If ICP brings the pose back to within 3 sigma of the answer, the direction holds. If
-not, with ``o`` the larger offset left and ``rho = o / d`` the fraction not recovered, the
-direction is uncertain by about ``o / (1 - rho)`` (capped at 10 o): that variance is added along
-``e`` (kept in the target frame, turning with it) to every registration until the next probe, so
-the filter weighs them as they deserve, its covariance and the protection level grow, and the
-pose turns degraded rather than wrong-but-valid.
+not, ICP runs once more from twice the push on the side that was left further off (offset ``o``
+from ``d``, ``o2`` from ``2 d``). With ``rho = (o2 - o) / d`` the fraction of the extra push not
+recovered, the direction is uncertain by about ``o / (1 - rho)`` (capped at 10 o). A slide, where
+ICP stops where it starts, keeps the fraction (``o2 = 2 o``: the bound extrapolates it); a second
+basin next to the answer catches both pushes at the same place (``o2 = o``: the uncertainty is the
+basin's offset, not more: at 20 m on the ISS-like port a twin basin 1.6 cm along the port face
+caught every push from 2 to 10 cm, and extrapolating from one push made it 0.5 m and held a
+healthy approach degraded). That variance is added along ``e`` (kept in the target frame, turning with it) to every registration, so the filter weighs them
+as they deserve, its covariance and the protection level grow, and the pose turns degraded rather
+than wrong-but-valid.
+
+**A slide is held** for ``integrity.slide_hold_s`` after the last probe that found it, whatever
+the probes in between say. On a weak aspect the probes flicker: ICP in a shallow basin comes back
+from one pair of pushes and not from the next, and a registration 0.25 m off along the truss
+claimed 2 cm in the frames whose probe "held". Clearing the inflation on such a probe gave the
+filter those frames at face value: it took a wrong velocity along the weak axis, rejected the
+right registrations that followed, and dragged the track 5 m off under a 0.7 m protection level
+(a fly-around run, 123 m, far side). The weakness belongs to the aspect, not to one frame: held
+slides are kept in the target frame across a new track (a planned restart looks at the same
+aspect) and expire only with time; slides along nearly the same axis (within 20 deg) merge into
+one, at the larger sigma.
 """
 
 from __future__ import annotations
@@ -39,6 +55,9 @@ FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["SlideMonitor"]
 
+#: Slides whose axes are within 20 deg of each other are one slide.
+_MERGE_COS = math.cos(math.radians(20.0))
+
 
 class SlideMonitor:
     """The slide monitor of the pipeline's track (module docstring).
@@ -59,10 +78,13 @@ class SlideMonitor:
         self.checked_t = -np.inf
         self.axis_target: FloatArray | None = None
         self.sigma_m = 0.0
+        #: Held slides: ``[axis_target (3,), sigma_m, time found]`` (module docstring).
+        self.held: list[tuple[FloatArray, float, float]] = []
 
     def start(self) -> None:
-        """A new track: probe its first registrations; nothing carried over."""
-        self.reset()
+        """A new track: probe its first registrations; the held slides stay (they belong to
+        the aspect, which a restart does not change)."""
+        self.checked_t = -np.inf
 
     @property
     def enabled(self) -> bool:
@@ -78,7 +100,21 @@ class SlideMonitor:
         if n_updates < ig.confirm_frames or t_ref - self.checked_t >= ig.slide_check_period_s - 1e-9:
             self.checked_t = t_ref
             self.probe(pts, cloud, res, icp_cfg)
+            if self.axis_target is not None:
+                self.hold(self.axis_target, self.sigma_m, t_ref)
+        hold_s = ig.slide_hold_s
+        self.held = [h for h in self.held if t_ref - h[2] <= hold_s + 1e-9]
         return self.inflate(res)
+
+    def hold(self, axis_target: FloatArray, sigma_m: float, t: float) -> None:
+        """Hold a slide found at ``t`` [s]; one along a held axis (within 20 deg) merges into it
+        at the larger sigma."""
+        for i, (a, s, _) in enumerate(self.held):
+            if abs(float(a @ axis_target)) >= _MERGE_COS:
+                keep = (a, max(s, sigma_m), t) if s >= sigma_m else (axis_target, sigma_m, t)
+                self.held[i] = keep
+                return
+        self.held.append((axis_target, sigma_m, t))
 
     def probe(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult, icp_cfg: ICPConfig) -> None:
         """Push ``res`` both ways along its weakest position axis; set the slide (module doc)."""
@@ -90,27 +126,33 @@ class SlideMonitor:
         sigma = math.sqrt(max(float(lam[-1]), 0.0))
         rng = float(np.linalg.norm(T[:3, 3]))
         d = max(3.0 * sigma, self.tri.pc.integrity.slide_probe_fraction * rng)
-        offsets = []
-        for sgn in (1.0, -1.0):
+
+        def left(push: float) -> float:
+            """How far along ``e`` ICP stops from the answer pushed by ``push`` [m]."""
             T0 = T.copy()
-            T0[:3, 3] += sgn * d * e
+            T0[:3, 3] += push * e
             alt = icp(pts, self.tri.model, T0, sigma=cloud.sigma, directions=cloud.directions,
                       config=icp_cfg, coarse=False)
-            offsets.append(abs(float((alt.T_sensor_target[:3, 3] - T[:3, 3]) @ e)) if alt.converged else d)
+            return abs(float((alt.T_sensor_target[:3, 3] - T[:3, 3]) @ e)) if alt.converged else abs(push)
+
+        offsets = [left(d), left(-d)]
         o = max(offsets)
         if o <= 3.0 * sigma:
             self.axis_target, self.sigma_m = None, 0.0
             return
         self.slides += 1
-        rho = min(o / d, 1.0)
+        o2 = left(2.0 * d if offsets[0] >= offsets[1] else -2.0 * d)
+        rho = min(max((o2 - o) / d, 0.0), 1.0)
         self.sigma_m = min(o / max(1.0 - rho, 0.1), 10.0 * o)
         self.axis_target = T[:3, :3].T @ e
 
     def inflate(self, res: RegistrationResult) -> RegistrationResult:
-        """``res`` with ``sigma_m**2`` added along the slide's axis (none: ``res`` itself)."""
-        if self.axis_target is None or self.sigma_m <= 0.0:
+        """``res`` with each held slide's ``sigma**2`` added along its axis (none: ``res`` itself)."""
+        if not self.held:
             return res
-        e = res.T_sensor_target[:3, :3] @ self.axis_target
+        R = res.T_sensor_target[:3, :3]
         cov = res.covariance.copy()
-        cov[:3, :3] += self.sigma_m**2 * np.outer(e, e)
+        for a, s, _ in self.held:
+            e = R @ a
+            cov[:3, :3] += s * s * np.outer(e, e)
         return dataclasses.replace(res, covariance=cov)

@@ -206,6 +206,7 @@ class TrackingMode:
             self.clear_rejects()
             tri.n_updates += 1
             tri.last_pose_t = t_ref
+            tri.accepted_fitness = res.fitness
             return verdict
         # The registration is sound but the filter disagrees: an unmodelled manoeuvre or an
         # overconfident filter. After a few such frames that agree with one another,
@@ -251,8 +252,11 @@ class TrackingMode:
         if lost:
             tri = self.tri
             tri.stats.losses += 1
+            # A track whose last accepted registrations left many returns unexplained was
+            # sliding off: reacquiring from its prediction would continue the slide.
             if tri.filter.initialized:
-                tri.lost_track = tri.filter.copy()
+                sound = tri.accepted_fitness >= tri.pc.integrity.min_valid_fitness
+                tri.lost_track = tri.filter.copy() if sound else None
             tri.filter.reset()
             tri.n_updates = 0
             tri.search_started = t

@@ -171,6 +171,7 @@ class TriDAR:
         self.last_pose_t = -np.inf
         self.n_updates = 0
         self.lost_track: PoseFilter | None = None
+        self.accepted_fitness = 1.0  # fitness of the track's last accepted registration
         for part in (*self._handlers.values(), self.twins, self.slides, self.publisher):
             part.reset()
         if self.planner is not None:

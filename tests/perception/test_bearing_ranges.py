@@ -174,3 +174,50 @@ def test_slide_monitor_inflates_only_a_direction_icp_does_not_come_back_along(is
     e2 = R[:3, :3] @ e
     np.testing.assert_allclose(out2.covariance[:3, :3] - 0.003**2 * np.eye(3),
                                mon.sigma_m**2 * np.outer(e2, e2), atol=1e-15)
+
+
+def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss, monkeypatch) -> None:
+    """A second basin that catches every push at the same place is uncertain by its offset (not
+    extrapolated as a slide); a slide once found stays on the registrations for
+    ``slide_hold_s`` whatever the probes between say, across a new track, and then expires."""
+    import perception.pipeline.slides as slides
+
+    cfg = load_config("fly_around")
+    hold = cfg.pipeline.integrity.slide_hold_s
+    period = cfg.pipeline.integrity.slide_check_period_s
+    assert hold > 2 * period
+    tri = TriDAR(cfg, iss)
+    mon = tri.slides
+    T = make_T(np.eye(3), [0.0, 0.0, 85.0])
+    res = _result(T, 0.003)
+    cloud = type("C", (), {"sigma": np.full(5, 0.025), "directions": None})()
+    pts = np.zeros((5, 3))
+    icp_cfg = cfg.pipeline.icp
+    basin = 0.016
+
+    def second_basin(points, model, T0, **kw):  # every push on the + side lands 1.6 cm off
+        T1 = T.copy()
+        push = T0[:3, 3] - T[:3, 3]
+        if push.sum() > 0:
+            T1[:3, 3] += basin * push / np.linalg.norm(push)
+        return _result(T1, 0.003)
+
+    monkeypatch.setattr(slides, "icp", second_basin)
+    out = mon.apply(pts, cloud, res, 0.0, icp_cfg, 0)
+    e = mon.axis_target
+    assert mon.sigma_m == pytest.approx(basin, rel=1e-9)
+    np.testing.assert_allclose(out.covariance[:3, :3] - res.covariance[:3, :3],
+                               basin**2 * np.outer(e, e), atol=1e-15)
+
+    # Probes that find nothing do not clear a held slide, nor does a new track ...
+    monkeypatch.setattr(slides, "icp", lambda points, model, T0, **kw: _result(T, 0.003))
+    for t in np.arange(period, hold - 1e-6, period):
+        out = mon.apply(pts, cloud, res, float(t), icp_cfg, 10)
+        assert mon.axis_target is None  # the probe itself found no slide
+        np.testing.assert_allclose(out.covariance[:3, :3] - res.covariance[:3, :3],
+                                   basin**2 * np.outer(e, e), atol=1e-15)
+    mon.start()
+    assert mon.apply(pts, cloud, res, hold - 1e-3, icp_cfg, 0) is not res
+    # ... but time does.
+    assert mon.apply(pts, cloud, res, hold + period, icp_cfg, 10) is res
+    assert mon.held == []

@@ -29,6 +29,8 @@ entity                             what
 from __future__ import annotations
 
 import math
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +57,15 @@ def require_rerun() -> Any:
     except ImportError as exc:
         raise ValueError(f"the viewer needs the 'view' extra ({exc}); pip install 'tridar-env[view]'") from None
     return rr
+
+
+def require_window() -> None:
+    """A ``ValueError`` (one line) unless a viewer window can open: the extra and a display."""
+    require_rerun()
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ValueError("no display for the viewer window (DISPLAY and WAYLAND_DISPLAY unset); "
+                         "record with --record FILE.mcap, then tridar-env view FILE.mcap --save FILE.rrd "
+                         "and open that where there is a display (rerun FILE.rrd)")
 
 
 def _T_from_pose(msg: Any) -> np.ndarray:
@@ -160,6 +171,8 @@ def view(path: str | Path, save: str | Path | None = None, *, force: bool = Fals
     from tridar_env.mcap_log import refuse_existing
 
     out = refuse_existing(save, force) if save is not None else None
+    if out is None:
+        require_window()
     rec = rr.RecordingStream("tridar-env", recording_id=f"tridar-env:{Path(path).name}")
     if out is not None:
         rec.save(out)
@@ -168,7 +181,8 @@ def view(path: str | Path, save: str | Path | None = None, *, force: bool = Fals
     try:
         counts = log_recording(path, rec)
     finally:
-        rec.flush() if hasattr(rec, "flush") else None
+        # A viewer that went away must not hold the command up.
+        rec.flush(timeout_sec=1e38 if out is not None else 10.0)
         if out is not None:
             rec.disconnect()
     return counts

@@ -169,6 +169,10 @@ def _fly(args: argparse.Namespace, make: Any, env_name: str, prefix: str) -> int
 
 def _record_path(args: argparse.Namespace) -> Path | None:
     """Where the run is recorded: ``--record``, or for ``--view`` alone a temporary file."""
+    if args.view:
+        from agents.viewer import require_window
+
+        require_window()  # a window can open: checked before the run rather than after it
     if args.record is not None:
         from tridar_env.mcap_log import refuse_existing
 
@@ -176,8 +180,5 @@ def _record_path(args: argparse.Namespace) -> Path | None:
     if args.view:
         import tempfile
 
-        from agents.viewer import require_rerun
-
-        require_rerun()  # the 'view' extra is there, before the run rather than after it
         return Path(tempfile.gettempdir()) / f"tridar-view-{os.getpid()}-{time.time_ns()}.mcap"
     return None

@@ -50,3 +50,15 @@ def test_save_refuses_an_existing_file(run, tmp_path: Path, capsys) -> None:
     assert rrd.read_bytes() == b"someone's"
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "exists" in err[0]
+
+
+def test_no_display_is_one_line_not_a_hang(run, monkeypatch, capsys) -> None:
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the display check is for Linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", str(run.path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--save" in err[0]

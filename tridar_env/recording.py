@@ -61,7 +61,11 @@ def _hex_as_ints(o: Any) -> Any:
 
 def rng_state(rng: np.random.Generator) -> dict[str, Any]:
     """The generator's bit-generator state as JSON-safe data (big integers as hex strings)."""
-    return _ints_as_hex(rng.bit_generator.state)
+    st = rng.bit_generator.state
+    inner = st.get("state")
+    if st.get("bit_generator") == "PCG64" and isinstance(inner, dict):  # the default: no recursion
+        return {**st, "state": {"state": hex(inner["state"]), "inc": hex(inner["inc"])}}
+    return _ints_as_hex(st)
 
 
 def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:

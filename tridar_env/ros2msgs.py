@@ -234,17 +234,26 @@ class _Cdr:
         self.f64s([pos["x"], pos["y"], pos["z"], q["x"], q["y"], q["z"], q["w"]])
 
 
+def _fields_block(fields: list[dict[str, Any]]) -> bytes:
+    """The CDR bytes of a ``PointField[]`` starting at a 4-byte aligned offset (they do not
+    depend on where: every member aligns to at most 4)."""
+    c = _Cdr()
+    c.u32(len(fields))
+    for f in fields:
+        c.string(f["name"])
+        c.u32(f["offset"])
+        c.buf.append(f["datatype"])
+        c.u32(f["count"])
+    return bytes(c.buf[4:])
+
+
 def _encode_pointcloud2(m: dict[str, Any]) -> bytes:
     c = _Cdr()
     c.header(m["header"])
     c.u32(m["height"])
     c.u32(m["width"])
-    c.u32(len(m["fields"]))
-    for f in m["fields"]:
-        c.string(f["name"])
-        c.u32(f["offset"])
-        c.buf.append(f["datatype"])
-        c.u32(f["count"])
+    fields = m["fields"]
+    c.buf += _FIELDS_BYTES if fields is _FIELD_MSGS else _fields_block(fields)
     c.buf.append(1 if m["is_bigendian"] else 0)
     c.u32(m["point_step"])
     c.u32(m["row_step"])
@@ -268,6 +277,8 @@ def _encode_pose_with_covariance_stamped(m: dict[str, Any]) -> bytes:
     c.f64s(m["pose"]["covariance"])
     return bytes(c.buf)
 
+
+_FIELDS_BYTES = _fields_block(_FIELD_MSGS)
 
 #: ``pkg/msg/Type`` -> CDR encoder of its message dict.
 ENCODERS: dict[str, Callable[[dict[str, Any]], bytes]] = {

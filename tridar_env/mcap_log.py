@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,6 +129,9 @@ class McapLog:
         self._cdr_channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
         self.closed = False
+        #: CPU time [s] the recorder spent on its own work (its callers add to it; ``close``
+        #: adds the last chunk's): what recording costs, without an A/B run.
+        self.busy_s = 0.0
 
     def __enter__(self) -> Self:
         return self
@@ -180,10 +184,12 @@ class McapLog:
         if self.closed:
             return
         self.closed = True
+        t0 = time.process_time()
         try:
             self._w.finish()
         finally:
             self._fh.close()
+            self.busy_s += time.process_time() - t0
 
 
 @dataclass

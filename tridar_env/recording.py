@@ -25,6 +25,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -168,6 +169,7 @@ class PipelineTap:
 
     def _scan(self, scene: Any, t: float, pattern: Any) -> PointCloud:
         cloud = self._orig["scan"](scene, t, pattern)
+        t0 = time.process_time()
         tns = self.clock(float(t))
         msg = pointcloud2(cloud.points, cloud.times, cloud.intensity, cloud.sigma, cloud.directions,
                           cloud.subsystem, cloud.spurious, float(cloud.t_start))
@@ -181,9 +183,11 @@ class PipelineTap:
             self._frame["scans"].append(scan)
         mode = Mode(self.pipeline.mode).name.lower()
         self.log.json("/tridar/scan_region", _scan_region(pattern, mode, float(t)), tns)
+        self.log.busy_s += time.process_time() - t0
         return cloud
 
     def _step(self, scene: Any, t: float, ego: Any = None) -> StateVector:
+        t0 = time.process_time()
         frame: dict[str, Any] = {"t": float(t), "rng": rng_state(self.pipeline.rng), "scans": []}
         if ego is not None:
             frame["ego"] = {"omega": np.asarray(ego.omega).tolist(), "accel": np.asarray(ego.accel).tolist()}
@@ -196,14 +200,17 @@ class PipelineTap:
                 "sun_direction_target": None if sun is None else np.asarray(sun).tolist(),
             }
         self._frame = frame
+        self.log.busy_s += time.process_time() - t0
         try:
             sv = self._orig["step"](scene, t, ego)
         finally:
             self._frame = None
+        t0 = time.process_time()
         frame["state"] = state_to_dict(sv)
         tns = self.clock(float(t))
         self.log.json("/tridar/frame", frame, tns)
         write_state(self.log, sv, tns, truth)
+        self.log.busy_s += time.process_time() - t0
         return sv
 
 
@@ -301,6 +308,7 @@ class RecordMCAP(gym.Wrapper):
 
     def _record_step(self, info: dict[str, Any], action: Any, reward: Any, terminated: bool,
                      truncated: bool) -> None:
+        t0 = time.process_time()
         u = self.env.unwrapped
         t = float(info.get("t", getattr(u.world, "t", 0.0)))
         tns = self._clock(t)
@@ -314,7 +322,6 @@ class RecordMCAP(gym.Wrapper):
             "terminated": bool(terminated), "truncated": bool(truncated),
             "termination": info.get("termination", ""), "mode": info.get("mode", ""),
             "r_lvlh": w.state[:3].tolist(), "v_lvlh": w.state[3:].tolist(),
-            "T_lvlh_sensor": w.T_lvlh_sensor.tolist(), "T_lvlh_target": w.T_lvlh_target.tolist(),
             "pos_err_m": _num(info.get("estimate_position_error_m", math.nan)),
             "att_err_deg": _num(info.get("estimate_attitude_error_deg", math.nan)),
             "propellant_kg": _num(info.get("propellant_kg", math.nan)),
@@ -323,6 +330,7 @@ class RecordMCAP(gym.Wrapper):
         if self.tap is None and u.state_vector is not None:  # truth perception: one state per step
             T = info.get("truth_T_sensor_target")
             write_state(self.log, u.state_vector, tns, None if T is None else np.asarray(T))
+        self.log.busy_s += time.process_time() - t0
 
     def close(self) -> None:
         try:

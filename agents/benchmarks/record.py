@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     plain = gym.make(args.id, perception=args.perception)
     ctrl = make_controller(args.controller, plain.unwrapped.cfg)
     rates: dict[str, list[float]] = {"off": [], "on": []}
-    sizes, sim = [], 0.0
+    sizes, own, sim = [], [], 0.0
     with tempfile.TemporaryDirectory(prefix="tridar-bench-record-") as tmp:
         _fly(plain, ctrl, 5)  # warm-up: PAH database, caches
         for i in range(args.repeats):
@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
             rec.close()  # the last chunk's compression is part of the cost
             cpu += time.process_time() - t0
             rates["on"].append(n / cpu)
+            own.append(rec.log.busy_s / n)
             sizes.append(path.stat().st_size)
     plain.close()
     base = float(np.median(rates["off"]))
@@ -81,6 +82,14 @@ def run(args: argparse.Namespace) -> int:
                      "step_ms_median": 1e3 / med, "step_ms_p90": 1e3 / slow, "ratio_to_plain": med / base})
     print(format_table(rows))
     size = float(np.median(sizes))
+    # Each recorded run against the plain run just before it (the same load on the machine).
+    paired = 1.0 - np.asarray(rates["on"]) / np.asarray(rates["off"])
+    own_ms = 1e3 * np.asarray(own)
+    print(f"the recorder's own time per step (timed inside it): median {float(np.median(own_ms)):.2f} ms, "
+          f"p90 {float(np.percentile(own_ms, 90)):.2f} ms = {100.0 * float(np.median(own_ms)) * base / 1e3:.1f} % "
+          "of a plain step")
+    print(f"overhead per pair of runs: median {100.0 * float(np.median(paired)):.1f} %, p90 "
+          f"{100.0 * float(np.percentile(paired, 90)):.1f} %")
     print(f"overhead: {100.0 * (1.0 - rows[1]['steps_per_s_median'] / base):.1f} % of the plain steps/s "
           f"(goal <= 15 %); {args.steps} steps = {sim:.0f} simulated s recorded in {size / 1e6:.1f} MB "
           f"({size / max(sim, 1e-9) / 1e3:.0f} kB per simulated s); CPU time of this process")

@@ -16,9 +16,11 @@ SB3's protocol:
 
 So environment ``i`` flies, seed for seed and action for action, the episodes of
 ``gymnasium.make(id, **kwargs)`` reset with ``seed + i`` and then reset without a seed whenever an
-episode ends (``DummyVecEnv``'s sequence). Observations and terminations are identical;
-rewards agree to round-off (``TruthVectorEnv``'s batched CW products round differently from the
-single env's, ~1e-14). ``tests/agents/test_vec_adapter.py`` holds the two together.
+episode ends (``DummyVecEnv``'s sequence). Episode lengths, terminations, truncations, causes
+and every episode's first observation are identical; later observations agree to round-off (now
+and then the last bit of a float32 component) and rewards to ~1e-14, because
+``TruthVectorEnv``'s batched CW products round differently from the single env's.
+``tests/agents/test_vec_adapter.py`` holds the two together.
 
 The per-environment ``infos`` carry what ``TruthVectorEnv`` reports (``termination``, ``t``,
 ``delta_v``, the ``reward_*`` terms, ...), not the single env's pipeline fields. Wrap the adapter in

@@ -23,16 +23,16 @@ healthy approach degraded). That variance is added along ``e`` (kept in the targ
 as they deserve, its covariance and the protection level grow, and the pose turns degraded rather
 than wrong-but-valid.
 
-**A slide is held** for ``integrity.slide_hold_s`` after the last probe that found it, whatever
-the probes in between say. On a weak aspect the probes flicker: ICP in a shallow basin comes back
-from one pair of pushes and not from the next, and a registration 0.25 m off along the truss
-claimed 2 cm in the frames whose probe "held". Clearing the inflation on such a probe gave the
-filter those frames at face value: it took a wrong velocity along the weak axis, rejected the
-right registrations that followed, and dragged the track 5 m off under a 0.7 m protection level
-(a fly-around run, 123 m, far side). The weakness belongs to the aspect, not to one frame: held
-slides are kept in the target frame across a new track (a planned restart looks at the same
-aspect) and expire only with time; slides along nearly the same axis (within 20 deg) merge into
-one, at the larger sigma.
+**A slide can be held** (``integrity.slide_hold_s``, default 0: until the next probe) after the
+last probe that found it, whatever the probes in between say, kept in the target frame across a
+new track (a planned restart looks at the same aspect); slides along nearly the same axis
+(within 20 deg) merge at the larger sigma. On a weak aspect the probes flicker (ICP comes back
+from one pair of pushes and not from the next), and a registration 0.25 m off along the truss
+claimed 2 cm in a frame whose probe "held". Holding for 30 s was measured on the fly-around
+campaign and made it worse: with its registrations deweighted along the truss for half a minute
+the filter kept a wrong velocity there unchallenged, and ICP from the drifted prediction then
+settled in another bay (4 runs in 100 valid-but-wrong, 4 stalled, against 1 valid-but-wrong with
+no hold on the same runs). It stays off in every shipped mission.
 """
 
 from __future__ import annotations
@@ -100,10 +100,12 @@ class SlideMonitor:
         if n_updates < ig.confirm_frames or t_ref - self.checked_t >= ig.slide_check_period_s - 1e-9:
             self.checked_t = t_ref
             self.probe(pts, cloud, res, icp_cfg)
+            if ig.slide_hold_s <= 0.0:
+                self.held = []  # no hold: a slide lasts until the next probe
             if self.axis_target is not None:
                 self.hold(self.axis_target, self.sigma_m, t_ref)
-        hold_s = ig.slide_hold_s
-        self.held = [h for h in self.held if t_ref - h[2] <= hold_s + 1e-9]
+        if ig.slide_hold_s > 0.0:
+            self.held = [h for h in self.held if t_ref - h[2] <= ig.slide_hold_s + 1e-9]
         return self.inflate(res)
 
     def hold(self, axis_target: FloatArray, sigma_m: float, t: float) -> None:

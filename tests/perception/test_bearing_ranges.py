@@ -178,12 +178,13 @@ def test_slide_monitor_inflates_only_a_direction_icp_does_not_come_back_along(is
 
 def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss, monkeypatch) -> None:
     """A second basin that catches every push at the same place is uncertain by its offset (not
-    extrapolated as a slide); a slide once found stays on the registrations for
-    ``slide_hold_s`` whatever the probes between say, across a new track, and then expires."""
+    extrapolated as a slide); with a hold, a slide once found stays on the registrations for
+    ``slide_hold_s`` whatever the probes between say, across a new track, and then expires;
+    without one (the default) the next probe that finds nothing clears it."""
     import perception.pipeline.slides as slides
 
-    cfg = load_config("fly_around")
-    hold = cfg.pipeline.integrity.slide_hold_s
+    hold = 30.0
+    cfg = load_config("fly_around", pipeline__integrity__slide_hold_s=hold)
     period = cfg.pipeline.integrity.slide_check_period_s
     assert hold > 2 * period
     tri = TriDAR(cfg, iss)
@@ -221,3 +222,11 @@ def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss,
     # ... but time does.
     assert mon.apply(pts, cloud, res, hold + period, icp_cfg, 10) is res
     assert mon.held == []
+
+    # No hold (the default): the next probe decides.
+    mon = TriDAR(load_config("fly_around"), iss).slides
+    monkeypatch.setattr(slides, "icp", second_basin)
+    mon.apply(pts, cloud, res, 0.0, icp_cfg, 0)
+    assert mon.apply(pts, cloud, res, 0.5 * period, icp_cfg, 10) is not res  # until the next probe
+    monkeypatch.setattr(slides, "icp", lambda points, model, T0, **kw: _result(T, 0.003))
+    assert mon.apply(pts, cloud, res, period, icp_cfg, 10) is res

@@ -132,19 +132,21 @@ def _result(T: np.ndarray, sigma: float) -> RegistrationResult:
                               covariance=np.diag([sigma**2] * 3 + [1e-8] * 3))
 
 
+def _monitor_at_85_m(iss, **overrides):  # type: ignore[no-untyped-def]
+    """A slide monitor of the fly-around pipeline, a 3 mm registration 85 m out on the boresight,
+    a stand-in cloud, and the ICP settings: ``(cfg, monitor, T, res, cloud, pts, icp_cfg)``."""
+    cfg = load_config("fly_around", **overrides)
+    T = make_T(np.eye(3), [0.0, 0.0, 85.0])
+    cloud = type("C", (), {"sigma": np.full(5, 0.025), "directions": None})()
+    return cfg, TriDAR(cfg, iss).slides, T, _result(T, 0.003), cloud, np.zeros((5, 3)), cfg.pipeline.icp
+
+
 def test_slide_monitor_inflates_only_a_direction_icp_does_not_come_back_along(iss, monkeypatch) -> None:
     """A pose ICP brings back from both pushes is left alone; one it leaves where it started
     gets ``o / (1 - rho)`` of variance along the pushed axis, turning with the target."""
     import perception.pipeline.slides as slides
 
-    cfg = load_config("fly_around")
-    tri = TriDAR(cfg, iss)
-    mon = tri.slides
-    T = make_T(np.eye(3), [0.0, 0.0, 85.0])
-    res = _result(T, 0.003)
-    cloud = type("C", (), {"sigma": np.full(5, 0.025), "directions": None})()
-    pts = np.zeros((5, 3))
-    icp_cfg = cfg.pipeline.icp
+    cfg, mon, T, res, cloud, pts, icp_cfg = _monitor_at_85_m(iss)
 
     def comes_back(points, model, T0, **kw):
         return _result(T, 0.003)
@@ -184,16 +186,9 @@ def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss,
     import perception.pipeline.slides as slides
 
     hold = 30.0
-    cfg = load_config("fly_around", pipeline__integrity__slide_hold_s=hold)
+    cfg, mon, T, res, cloud, pts, icp_cfg = _monitor_at_85_m(iss, pipeline__integrity__slide_hold_s=hold)
     period = cfg.pipeline.integrity.slide_check_period_s
     assert hold > 2 * period
-    tri = TriDAR(cfg, iss)
-    mon = tri.slides
-    T = make_T(np.eye(3), [0.0, 0.0, 85.0])
-    res = _result(T, 0.003)
-    cloud = type("C", (), {"sigma": np.full(5, 0.025), "directions": None})()
-    pts = np.zeros((5, 3))
-    icp_cfg = cfg.pipeline.icp
     basin = 0.016
 
     def second_basin(points, model, T0, **kw):  # every push on the + side lands 1.6 cm off
@@ -224,7 +219,7 @@ def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss,
     assert mon.held == []
 
     # No hold (the default): the next probe decides.
-    mon = TriDAR(load_config("fly_around"), iss).slides
+    mon = _monitor_at_85_m(iss)[1]
     monkeypatch.setattr(slides, "icp", second_basin)
     mon.apply(pts, cloud, res, 0.0, icp_cfg, 0)
     assert mon.apply(pts, cloud, res, 0.5 * period, icp_cfg, 10) is not res  # until the next probe

@@ -231,7 +231,9 @@ def test_shipped_training_configs_validate():
     assert {load_training(p).algo for p in paths} == {"ppo", "sac"}
     for p in paths:
         cfg = load_training(p)
-        assert cfg.perception == "truth+noise" and cfg.n_envs == 2
+        assert cfg.perception == "truth+noise" and cfg.n_envs >= 2
+        # Many envs only where they come batched in one process (two cores).
+        assert cfg.n_envs == 2 or cfg.vec_env in ("auto", "batched"), (p.name, cfg.n_envs, cfg.vec_env)
 
 
 def test_same_seed_same_policy(tmp_path):

@@ -173,7 +173,7 @@ class BatchedVecEnv(VecEnv):
     def env_method(
         self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any
     ) -> list[Any]:
-        raise NotImplementedError(
+        raise ValueError(
             f"env_method({method_name!r}): the batched environments have no per-environment "
             "methods; use vec_env 'subproc' or 'dummy' for that"
         )

@@ -11,6 +11,7 @@ import tridar_env  # noqa: F401  (registers the ids)
 from agents.vec_adapter import BatchedVecEnv, make_batched_vec_env
 from tridar_env.env import OBS_DIM
 from tridar_env.vector import TruthVectorEnv
+from tests.agents.test_training import TINY as TRAINING_TINY
 
 N = 4
 SEED = 7
@@ -167,7 +168,7 @@ def test_sb3_protocol_seeds_infos_and_monitor() -> None:
             "reward_progress",
             "terminal_observation",
         }
-    with pytest.raises(NotImplementedError, match="env_method"):
+    with pytest.raises(ValueError, match="env_method"):
         venv.env_method("reset")
     venv.close()
 
@@ -188,19 +189,8 @@ def test_unbatchable_configurations_are_refused_naming_the_field() -> None:
 
 
 # ------------------------------------------------------------------------------------------- train
-TINY = {
-    "name": "tiny",
-    "algo": "ppo",
-    "env_id": "TriDAR/FinalApproach-v0",
-    "perception": "truth+noise",
-    "config": {"env__frame_skip": 5, "env__initial__range_m": 5.0},
-    "total_timesteps": 256,
-    "n_envs": 4,
-    "seed": 3,
-    "checkpoint_every_steps": None,
-    "net_arch": [16, 16],
-    "hyperparams": {"n_steps": 32, "batch_size": 64, "n_epochs": 1},
-}
+# The training tests' tiny run, with 4 envs and the default vec_env (auto).
+TINY = {k: v for k, v in {**TRAINING_TINY, "n_envs": 4}.items() if k != "vec_env"}
 
 
 def test_train_uses_the_adapter_where_the_run_allows_it(tmp_path) -> None:

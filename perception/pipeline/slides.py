@@ -113,7 +113,7 @@ class SlideMonitor:
         at the larger sigma."""
         for i, (a, s, _) in enumerate(self.held):
             if abs(float(a @ axis_target)) >= _MERGE_COS:
-                keep = (a, max(s, sigma_m), t) if s >= sigma_m else (axis_target, sigma_m, t)
+                keep = (a, s, t) if s >= sigma_m else (axis_target, sigma_m, t)
                 self.held[i] = keep
                 return
         self.held.append((axis_target, sigma_m, t))

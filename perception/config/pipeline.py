@@ -99,6 +99,13 @@ class IntegrityConfig(StrictModel):
         "100, 4 stalls); the registrations it deweights are what keeps a track's velocity along "
         "the weak axis honest"
     )
+    slide_velocity_time_s: Annotated[Float, Field(gt=0, le=1e6)] | None = Field(
+        None, description="while a slide of sigma s is on the registrations, the filter's "
+        "velocity along it is kept uncertain by at least s / this [m/s]: the slide's error "
+        "persists from frame to frame, and a filter that averaged it away became sure of a "
+        "velocity the scans never observed (a fly-around track drifted 1-25 m along the ISS-like "
+        "truss under a 0.7 m protection level) (None: off)"
+    )
     slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
         0.001, description="slide probe's push: max(3 sigma, this * range) [m]"
     )

@@ -376,6 +376,27 @@ class PoseFilter:
         self.P = 0.5 * (self.P + self.P.T)
         return UpdateResult(True, d2)
 
+    def floor_velocity(self, axis: npt.ArrayLike, sigma: float) -> None:
+        """Raise the velocity variance along ``axis`` (sensor coordinates) to at least ``sigma**2``
+        [(m/s)^2], as process noise injected now (the other directions and the cross terms are
+        left alone, so the covariance stays positive definite).
+
+        Registrations along an axis the scan leaves weak carry an error that persists from frame
+        to frame (a slide): a filter that averages them as independent becomes sure of a
+        velocity the scans never observed, then ignores the registrations that would correct
+        it.
+        """
+        e = np.asarray(axis, dtype=np.float64).reshape(3)
+        n = float(np.linalg.norm(e))
+        if not (np.isfinite(n) and n > 0 and np.isfinite(sigma)):
+            raise ValueError(f"floor_velocity(axis={e.tolist()}, sigma={sigma}); expected a finite non-zero axis and a finite sigma")
+        e = e / n
+        gap = float(sigma) ** 2 - float(e @ self.P[3:6, 3:6] @ e)
+        if gap > 0.0:
+            P = self.P.copy()
+            P[3:6, 3:6] += gap * np.outer(e, e)
+            self.P = P
+
     @property
     def T_sensor_target(self) -> FloatArray:
         """Current pose of the target origin."""

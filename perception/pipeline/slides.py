@@ -23,6 +23,16 @@ healthy approach degraded). That variance is added along ``e`` (kept in the targ
 as they deserve, its covariance and the protection level grow, and the pose turns degraded rather
 than wrong-but-valid.
 
+**A slide keeps the filter's velocity along it uncertain** (``integrity.slide_velocity_time_s``
+= tau): its error persists from frame to frame, so a filter that averages the deweighted
+registrations as independent noise grows sure of a velocity along the slide that the scans never
+observed, and then ignores the registrations that would correct it (a fly-around track kept a
+velocity 4-11 cm/s wrong along the ISS-like truss for 100 s and drifted 1-25 m under a 0.7 m
+protection level). While a slide of sigma ``s`` is on, the velocity variance along it is raised to
+``(s / tau)**2`` before each prediction (a consider-style floor, injected as process noise): the
+prediction then carries that uncertainty into the position, the registrations pull the track
+back, and the protection level covers what they cannot settle.
+
 **A slide can be held** (``integrity.slide_hold_s``, default 0: until the next probe) after the
 last probe that found it, whatever the probes in between say, kept in the target frame across a
 new track (a planned restart looks at the same aspect); slides along nearly the same axis
@@ -49,6 +59,7 @@ from perception.estimation.registration import RegistrationResult, icp
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:
+    from perception.pipeline.filter import PoseFilter
     from perception.pipeline.tridar import TriDAR
 
 FloatArray = npt.NDArray[np.float64]
@@ -147,6 +158,16 @@ class SlideMonitor:
         rho = min(max((o2 - o) / d, 0.0), 1.0)
         self.sigma_m = min(o / max(1.0 - rho, 0.1), 10.0 * o)
         self.axis_target = T[:3, :3].T @ e
+
+    def loosen(self, f: PoseFilter) -> None:
+        """Before ``f`` predicts to its next registration: keep its velocity along each slide
+        uncertain by ``sigma / slide_velocity_time_s`` (module docstring), so the prediction
+        carries that uncertainty into the position the registration is weighed against."""
+        tau = self.tri.pc.integrity.slide_velocity_time_s
+        if tau is None or not self.held or not f.initialized:
+            return
+        for a, s, _ in self.held:
+            f.floor_velocity(f.R @ a, s / tau)
 
     def inflate(self, res: RegistrationResult) -> RegistrationResult:
         """``res`` with each held slide's ``sigma**2`` added along its axis (none: ``res`` itself)."""

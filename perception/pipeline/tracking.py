@@ -201,6 +201,7 @@ class TrackingMode:
         """The filter's update on a good registration; the frame's verdict after it."""
         tri = self.tri
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
+        tri.slides.loosen(tri.filter)
         upd = tri.filter.update(t_ref, res.T_sensor_target, cov)
         if upd.accepted:
             self.clear_rejects()
@@ -228,6 +229,7 @@ class TrackingMode:
         tri.stats.filter_reinits += 1
         tri.n_updates = 1
         tri.last_pose_t = t_ref
+        tri.accepted_fitness = res.fitness
         return verdict
 
     def _restart_on_rejected(self, f: PoseFilter) -> PoseFilter | None:

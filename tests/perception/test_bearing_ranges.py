@@ -225,3 +225,35 @@ def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss,
     assert mon.apply(pts, cloud, res, 0.5 * period, icp_cfg, 10) is not res  # until the next probe
     monkeypatch.setattr(slides, "icp", lambda points, model, T0, **kw: _result(T, 0.003))
     assert mon.apply(pts, cloud, res, period, icp_cfg, 10) is res
+
+
+def test_slide_keeps_the_filters_velocity_along_it_uncertain(iss, monkeypatch) -> None:
+    """With ``slide_velocity_time_s``, a slide of sigma s keeps the track filter's velocity
+    variance along the slide's axis (turning with the target) at least ``(s / tau)**2``; the
+    other directions are left alone, and with no slide nothing changes."""
+    import perception.pipeline.slides as slides
+    from perception.pipeline.filter import PoseFilter
+
+    tau = 10.0
+    cfg, mon, T, res, cloud, pts, icp_cfg = _monitor_at_85_m(
+        iss, pipeline__integrity__slide_velocity_time_s=tau)
+
+    def stays(points, model, T0, **kw):  # ICP stops where it starts: a slide
+        return _result(T0, 0.003)
+
+    monkeypatch.setattr(slides, "icp", stays)
+    mon.apply(pts, cloud, res, 0.0, icp_cfg, 0)
+    assert mon.sigma_m > 0
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    f = PoseFilter(init_velocity_sigma=1e-4)
+    f.initialize(0.0, make_T(R, [0.0, 0.0, 85.0]), np.eye(6) * 1e-6)
+    P0 = f.P.copy()
+    mon.loosen(f)
+    e = R @ mon.axis_target
+    np.testing.assert_allclose(f.P - P0, np.pad(((mon.sigma_m / tau) ** 2 - 1e-8) * np.outer(e, e),
+                                                ((3, 6), (3, 6))), atol=1e-15)
+    monkeypatch.setattr(slides, "icp", lambda points, model, T0, **kw: _result(T, 0.003))
+    mon.apply(pts, cloud, res, 5.0, icp_cfg, 10)  # the next probe finds none
+    P1 = f.P.copy()
+    mon.loosen(f)
+    np.testing.assert_array_equal(f.P, P1)

@@ -207,3 +207,63 @@ def test_torque_free_model_predicts_a_nutating_tumble() -> None:
         if name == "euler":
             np.testing.assert_allclose(f.R.T @ f.w, sol.y[:3, -1], atol=1e-8)
     assert errs["euler"] < 1e-4 and errs["constant"] > 1.0  # [deg]
+
+
+def _slide_run(tau: float | None, seed: int) -> tuple[float, float]:
+    """A converged filter sure of a wrong velocity (5 cm/s, 2 mm/s sigma) along x takes 200 s of
+    registrations whose x error is a slide (a random walk, 2 cm per frame) reported as such (1 m
+    sigma added along x); returns the worst |x error| / x sigma after the first 10 s and the
+    final x error [m]."""
+    rng = np.random.default_rng(seed)
+    f = PoseFilter(accel_psd=(2e-4) ** 2, angacc_psd=(2e-5) ** 2)
+    T = make_T(np.eye(3), np.array([0.0, 0.0, 120.0]))
+    cov = np.diag([0.005**2] * 3 + [np.radians(0.05) ** 2] * 3)
+    f.initialize(0.0, T, cov, velocity=np.array([0.05, 0.0, 0.0]))
+    P = f.P.copy()
+    P[3:6, 3:6] = np.eye(3) * 0.002**2
+    f.P = P
+    s, e = 1.0, np.array([1.0, 0.0, 0.0])
+    cov_slide = cov.copy()
+    cov_slide[:3, :3] += s * s * np.outer(e, e)
+    bias, worst = 0.0, 0.0
+    for k in range(1, 401):
+        t = 0.5 * k
+        bias += rng.normal(0.0, 0.02)
+        Tm = T.copy()
+        Tm[:3, 3] += bias * e + rng.normal(0.0, 0.005, 3)
+        if tau is not None:
+            f.floor_velocity(e, s / tau)
+        f.update(t, Tm, cov_slide)
+        if t > 10.0:
+            worst = max(worst, abs(f.p[0]) / np.sqrt(f.P[0, 0]))
+    return worst, abs(f.p[0])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_velocity_floor_keeps_a_slide_inside_the_covariance(seed: int) -> None:
+    """Without the floor the filter averages the slide away, keeps its wrong velocity and ends
+    many sigma off; with it (slide sigma / 10 s) the error stays inside 3 sigma throughout."""
+    worst_off, _ = _slide_run(None, seed)
+    worst_on, err_on = _slide_run(10.0, seed)
+    assert worst_off > 5.0
+    assert worst_on < 3.0
+    assert err_on < 0.5
+
+
+def test_velocity_floor_only_raises_the_variance_along_its_axis() -> None:
+    f = PoseFilter()
+    f.initialize(0.0, make_T(np.eye(3), [0.0, 0.0, 50.0]), np.eye(6) * 1e-6)
+    P0 = f.P.copy()
+    axis = np.array([1.0, 2.0, 2.0])
+    e = axis / 3.0
+    f.floor_velocity(axis, 1.0)  # above the 0.3 m/s init sigma: raised to exactly 1 m/s
+    assert e @ f.P[3:6, 3:6] @ e == pytest.approx(1.0)
+    dP = f.P - P0
+    np.testing.assert_allclose(dP[3:6, 3:6], (1.0 - 0.09) * np.outer(e, e), atol=1e-12)
+    dP[3:6, 3:6] = 0.0
+    assert not dP.any()
+    f.floor_velocity(axis, 0.1)  # already above: unchanged
+    assert e @ f.P[3:6, 3:6] @ e == pytest.approx(1.0)
+    assert np.all(np.linalg.eigvalsh(f.P) > 0)
+    with pytest.raises(ValueError, match="floor_velocity"):
+        f.floor_velocity([0.0, 0.0, 0.0], 1.0)

@@ -74,9 +74,11 @@ class ICPConfig(StrictModel):
     )
     match_along_rays: StrictBool = Field(
         False, description="match each point to the face its measured ray crosses (unbiased near "
-        "edges; PAH turns it on). Off by default in tracking: closed-loop docking on the iss_port "
-        "model was worse with it at all ranges (the demo's max error 92 cm / 17 deg vs 15 cm / 2 "
-        "deg); its missions turn it on for triangulation data (icp_triangulation)"
+        "edges; PAH turns it on). Every shipped mission turns it on in tracking: closest-face "
+        "matching put face-on points near an edge onto back-facing side faces and claimed "
+        "in-plane information the scan does not carry (a generated assembly held 5-6 cm off at "
+        "8-11 m under a 3 mm sigma; V-bar port error under 10 m p95 13.2 mm closest-face, 3.9 mm "
+        "along the rays)"
     )
 
 

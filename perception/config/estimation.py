@@ -77,7 +77,7 @@ class ICPConfig(StrictModel):
         "edges; PAH turns it on). Every shipped mission turns it on in tracking: closest-face "
         "matching put face-on points near an edge onto back-facing side faces and claimed "
         "in-plane information the scan does not carry (a generated assembly held 5-6 cm off at "
-        "8-11 m under a 3 mm sigma; V-bar port error under 10 m p95 13.2 mm closest-face, 3.9 mm "
+        "8-11 m under a 3 mm sigma; V-bar replay port error under 10 m p95 7.2 mm closest-face, 3.9 mm "
         "along the rays)"
     )
 

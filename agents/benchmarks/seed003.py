@@ -28,7 +28,8 @@ global method there) and then run frame to frame from its own prediction:
   constant-velocity prediction, on the same uniform subset as ``P2Plane``;
 - ``P2Plane+CV+outline`` (``p2plane+cv+outline``, extra row): ``P2Plane+CV+rays``, then the
   outline refinement (:class:`~perception.estimation.flashtrack.OutlineFlashTracker` without its
-  filter; ``--outline-points``, ``--outline-pairs``): the CYGNSS bus and wings are plates seen
+  filter, as the flash pipeline runs it; ``--outline-points`` stratified over the frame, ICP on
+  ``--outline-icp-points`` of them, ``--outline-pairs``): the CYGNSS bus and wings are plates seen
   nearly face-on, whose in-plane position and roll point-to-plane ICP barely constrains;
 - ``P2Plane+EKF+outline`` (``p2plane+ekf+outline``, extra row, the best):
   :class:`~perception.estimation.flashtrack.OutlineFlashTracker`, the refinement from the
@@ -123,9 +124,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="points per frame for the surface rows of the outline tracker",
     )
     parser.add_argument(
+        "--outline-icp-points",
+        type=int,
+        default=300,
+        help="of the outline tracker's points, those ICP aligns before the refinement",
+    )
+    parser.add_argument(
         "--outline-pairs",
         type=int,
-        default=1500,
+        default=600,
         help="outline pixel pairs per frame for the outline tracker",
     )
     parser.add_argument("--no-plots", action="store_true")
@@ -207,13 +214,18 @@ def make_trackers(
     ``(seed, experiment, method)``: a row's numbers do not depend on which other rows run."""
     from perception.estimation.flashtrack import make_flash_tracker
 
+    outline = {
+        "n_points": args.outline_points,
+        "icp_points": args.outline_icp_points,
+        "max_pairs": args.outline_pairs,
+    }
     options: dict[str, dict[str, Any]] = {
         "Proposed": {"q_lines": args.q_lines, "d_model": args.d_model},
         "Lines+P2Plane": {"q_lines": args.q_lines, "d_model": args.d_model},
         "P2Plane": {"n_points": args.plane_points},
         "P2Plane+CV+rays": {"n_points": args.plane_points},
-        "P2Plane+CV+outline": {"n_points": args.outline_points, "max_pairs": args.outline_pairs},
-        "P2Plane+EKF+outline": {"n_points": args.outline_points, "max_pairs": args.outline_pairs},
+        "P2Plane+CV+outline": outline,
+        "P2Plane+EKF+outline": outline,
     }
     out = {}
     for name in names:

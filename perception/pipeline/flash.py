@@ -13,10 +13,11 @@ scanning sensor, so a scanning and a flash sensor can be compared closed loop on
 * **tracking**: the flash tracker (:func:`~perception.estimation.flashtrack.make_flash_tracker`,
   ``p2plane+cv+outline`` by default: point-to-plane ICP matched along the rays with the outline
   refinement, its own covariance consistent (NEES ~6), no filter of its own, since the pipeline's
-  filter is the one that predicts) from the filter's prediction; a new track (acquisition,
+  filter is the one that predicts) from the filter's prediction, on a stratified subset of the
+  frame (a bounded cost per frame whatever the range); a new track (acquisition,
   reacquisition) starts the tracker afresh on the acquired pose. The filter's gate, the
-  restarts, the twin monitor (on a subset of the frame), the slide monitor and the integrity rule
-  are the TriDAR pipeline's.
+  restarts, the twin monitor (on a random subset of :data:`TWIN_POINTS` returns), the slide
+  monitor and the integrity rule are the TriDAR pipeline's.
 
 A flash frame is taken at one instant (no scan distortion, nothing to de-skew); the sensor
 faults of ``sensor.faults`` belong to the scanning sensor and are not applied.
@@ -41,7 +42,12 @@ from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FlashPipeline", "FlashSensor"]
+__all__ = ["TWIN_POINTS", "FlashPipeline", "FlashSensor"]
+
+#: Returns of a tracking frame the twin monitor scores its alternatives on and polishes with
+#: ICP (every ``symmetry_check_period_s``): the CYGNSS's twin is a half turn off, which 1,000
+#: returns over the target tell apart at half the cost of 2,000.
+TWIN_POINTS = 1000
 
 
 class FlashSensor:
@@ -98,7 +104,7 @@ class FlashTrackingMode(TrackingMode):
         if verdict.good:
             verdict = self._update(t_ref, res, expected, verdict)
         if verdict.good and tri.n_updates > 0:
-            sub = tri.subset(cloud)
+            sub = tri.subset(cloud, tri.twin_points)
             tri.twins.monitor(sub.points, sub, res, t_ref, tri.pc.icp)
         if self.conclude(cloud, cloud.points, t, t_ref, res, verdict):
             tracker.reset()
@@ -114,32 +120,48 @@ class FlashPipeline(TriDAR):
         pah: a PAH database to use instead of building (or reusing) one.
         tracker: kind of :func:`~perception.estimation.flashtrack.make_flash_tracker`.
         search_points: returns of a frame that bearing and search use (a random subset).
+        tracker_options: keywords of the tracker's class (default its own: for the outline
+            trackers 2,000 stratified returns, ICP on 300 of them, 600 outline pairs, the
+            per-frame cost bounded whatever the range).
+        twin_points: returns of a tracking frame the twin monitor scores and polishes its
+            alternatives on (a random subset).
     """
 
     def __init__(self, config: MissionConfig, target: TargetModel, *, pah: Any | None = None,
-                 tracker: str = "p2plane+cv+outline", search_points: int = 2000) -> None:
+                 tracker: str = "p2plane+cv+outline", search_points: int = 2000,
+                 tracker_options: dict[str, Any] | None = None,
+                 twin_points: int = TWIN_POINTS) -> None:
         if search_points < 20:
             raise ValueError(f"search_points={search_points}; expected >= 20")
+        if twin_points < 20:
+            raise ValueError(f"twin_points={twin_points}; expected >= 20")
         self.search_points = int(search_points)
+        self.twin_points = int(twin_points)
         self.tracker_kind = tracker
+        self.tracker_options = dict(tracker_options or {})
         super().__init__(config, target, sensor=FlashSensor(config.flash), pah=pah)  # type: ignore[arg-type]
         self.planner = None  # the flash frame covers the whole target: no region to choose
         self.tracking = FlashTrackingMode(self)
         self._handlers[Mode.TRACKING] = self.tracking
-        self.flash_tracker = make_flash_tracker(tracker, self.model_target, flash=config.flash,
-                                                rng=np.random.default_rng(0), filtered=False)
+        self.flash_tracker = self._make_tracker(np.random.default_rng(0))
+
+    def _make_tracker(self, rng: np.random.Generator) -> Any:
+        options = {"filtered": False, **self.tracker_options}
+        return make_flash_tracker(self.tracker_kind, self.model_target, flash=self.cfg.flash,
+                                  rng=rng, **options)
 
     def reset(self, rng: np.random.Generator) -> None:
         super().reset(rng)
         if hasattr(self, "flash_tracker"):
-            self.flash_tracker = make_flash_tracker(
-                self.tracker_kind, self.model_target, flash=self.cfg.flash, rng=rng, filtered=False)
+            self.flash_tracker = self._make_tracker(rng)
 
-    def subset(self, cloud: PointCloud) -> PointCloud:
-        """At most ``search_points`` returns of ``cloud``, drawn at random (in pixel order)."""
-        if len(cloud) <= self.search_points:
+    def subset(self, cloud: PointCloud, n: int | None = None) -> PointCloud:
+        """At most ``n`` (default ``search_points``) returns of ``cloud``, drawn at random (in
+        pixel order)."""
+        n = self.search_points if n is None else int(n)
+        if len(cloud) <= n:
             return cloud
-        idx = np.sort(self.rng.choice(len(cloud), self.search_points, replace=False))
+        idx = np.sort(self.rng.choice(len(cloud), n, replace=False))
         return cloud.select(idx)
 
     def scan(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud:

@@ -262,3 +262,58 @@ def test_interface_errors_and_restart(cygnss, tumbling) -> None:
         IcpFlashTracker(cygnss).init(frames[0].points, T_init)
     with pytest.raises(ValueError, match="motion="):
         IcpFlashTracker(cygnss, motion="psychic")
+
+
+def test_stratified_subset_draws_one_point_per_run() -> None:
+    from perception.estimation.flashtrack import stratified_subset
+
+    assert stratified_subset(100, 100, np.random.default_rng(0)) is None
+    assert stratified_subset(100, 500, np.random.default_rng(0)) is None
+    for n_total, n in ((1000, 7), (1001, 1000), (250_000, 2000), (3575, 300)):
+        idx = stratified_subset(n_total, n, np.random.default_rng(5))
+        assert idx is not None and idx.shape == (n,) and idx.dtype == np.intp
+        assert idx[0] >= 0 and idx[-1] < n_total and np.all(np.diff(idx) > 0)
+        # one index in each run [floor(k N / n), floor((k + 1) N / n))
+        bounds = (np.arange(n + 1) * (n_total / n)).astype(np.intp)
+        bounds[-1] = n_total
+        run = np.searchsorted(bounds, idx, "right") - 1
+        np.testing.assert_array_equal(run, np.arange(n))
+        np.testing.assert_array_equal(idx, stratified_subset(n_total, n, np.random.default_rng(5)))
+    # every point equally likely (within the runs' rounding), as in a uniform draw
+    rng = np.random.default_rng(1)
+    hits = np.zeros(1000)
+    for _ in range(2000):
+        hits[stratified_subset(1000, 300, rng)] += 1
+    p = hits / 2000
+    assert abs(p.mean() - 0.3) < 1e-12 and p.min() > 0.2 and p.max() < 0.6
+
+
+def test_stratified_subset_tracks_as_well_as_the_uniform_one(cygnss, tumbling) -> None:
+    """The pipeline's subsets (one point per strip of pixels for the outline refinement, a sparse
+    subset of those for ICP's coarse alignment) keep the trackers on the truth with a consistent
+    covariance, at the bench's bounds; and seeded runs are bitwise repeatable."""
+    truth, frames, T_init = tumbling
+    variants = {
+        "uniform, ICP on all": {"sampling": "uniform", "icp_points": None, "max_pairs": 1500},
+        "stratified, ICP on 300": {},  # the class defaults
+        "stratified, ICP on 100": {"icp_points": 100},
+    }
+    for filtered in (False, True):
+        for name, options in variants.items():
+            tracker = OutlineFlashTracker(cygnss, filtered=filtered, rng=4, **options)
+            results = run(tracker, frames, T_init)
+            e = np.array([error(r.T_sensor_target, T) for r, T in zip(results, truth)])
+            assert np.degrees(np.linalg.norm(e[:, 3:], axis=1)).max() < 0.2, name
+            assert np.linalg.norm(e[:, :3], axis=1).max() < 0.005, name
+            nees = [float(ek @ np.linalg.solve(r.covariance, ek)) for r, ek in zip(results, e)]
+            assert 1.5 < np.mean(nees[2:]) < 15.0 and max(nees) < 40.0, (name, nees)
+            assert all(r.n_points == 2000 for r in results), name  # the refinement's points
+    a = run(OutlineFlashTracker(cygnss, rng=7), frames[:4], T_init)
+    b = run(OutlineFlashTracker(cygnss, rng=np.random.default_rng(7)), frames[:4], T_init)
+    for ra, rb in zip(a, b):
+        np.testing.assert_array_equal(ra.T_sensor_target, rb.T_sensor_target)
+        np.testing.assert_array_equal(ra.covariance, rb.covariance)
+    with pytest.raises(ValueError, match="sampling="):
+        IcpFlashTracker(cygnss, sampling="sparse")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="icp_points="):
+        OutlineFlashTracker(cygnss, icp_points=3)

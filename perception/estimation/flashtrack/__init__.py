@@ -28,13 +28,18 @@ whole call). The trackers:
 :mod:`.icp`, :mod:`.outline`, :mod:`.seed003`, :mod:`.factory`. Import from here.
 """
 
-from perception.estimation.flashtrack.base import FlashTracker, flash_range_sigma, repeat_motion
+from perception.estimation.flashtrack.base import (
+    FlashTracker,
+    flash_range_sigma,
+    repeat_motion,
+    stratified_subset,
+)
 from perception.estimation.flashtrack.factory import (
     BEST_FLASH_TRACKER,
     FLASH_TRACKER_KINDS,
     make_flash_tracker,
 )
-from perception.estimation.flashtrack.icp import MOTION_MODELS, IcpFlashTracker
+from perception.estimation.flashtrack.icp import MOTION_MODELS, SAMPLINGS, IcpFlashTracker
 from perception.estimation.flashtrack.outline import OutlineFlashTracker
 from perception.estimation.flashtrack.seed003 import Seed003Tracker
 
@@ -42,6 +47,7 @@ __all__ = [
     "BEST_FLASH_TRACKER",
     "FLASH_TRACKER_KINDS",
     "MOTION_MODELS",
+    "SAMPLINGS",
     "FlashTracker",
     "IcpFlashTracker",
     "OutlineFlashTracker",
@@ -49,4 +55,5 @@ __all__ = [
     "flash_range_sigma",
     "make_flash_tracker",
     "repeat_motion",
+    "stratified_subset",
 ]

@@ -15,7 +15,16 @@ from perception.sensing.pointcloud import PointCloud
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FlashTracker", "centroid", "flash_range_sigma", "frame_time", "repeat_motion"]
+__all__ = [
+    "FlashTracker",
+    "centroid",
+    "flash_range_sigma",
+    "frame_time",
+    "repeat_motion",
+    "stratified_subset",
+]
+
+IndexArray = npt.NDArray[np.intp]
 
 
 @runtime_checkable
@@ -90,3 +99,30 @@ def repeat_motion(T_before: FloatArray, T_last: FloatArray) -> FloatArray:
     ``T_last (T_before^-1 T_last)``: a constant roll rate and a constant closing speed along the
     roll axis are predicted exactly (frames at a steady rate)."""
     return T_last @ np.linalg.solve(T_before, T_last)
+
+
+def stratified_subset(n_total: int, n: int, rng: np.random.Generator) -> IndexArray | None:
+    """Indices of ``n`` of ``n_total`` points, one drawn at random from each of ``n`` runs of
+    consecutive points of (nearly) equal length (None: ``n >= n_total``, every point).
+
+    A flash frame's points are in the pixel grid's row-major order, so the runs are strips of
+    the image: the subset covers the target evenly (the same number of points on every strip of
+    rows, none clumped), where a uniform draw leaves holes and clusters that thin the lever arm
+    of the rotation. Each point is drawn with probability ``1 / len(its run)``, within one of
+    ``n / n_total`` (runs are ``floor`` or ``ceil`` of ``n_total / n`` long). Costs ``n`` random
+    numbers, no sort.
+
+    Args:
+        n_total: points in the frame.
+        n: points wanted (>= 1).
+        rng: the generator of the draw.
+
+    Returns:
+        (n,) strictly increasing indices into the frame's points, or None.
+    """
+    if n >= n_total:
+        return None
+    bounds = (np.arange(n + 1) * (n_total / n)).astype(np.intp)  # run k: [bounds[k], bounds[k+1])
+    bounds[-1] = n_total
+    lo, width = bounds[:-1], np.diff(bounds)
+    return lo + (rng.random(n) * width).astype(np.intp)

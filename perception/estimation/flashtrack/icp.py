@@ -18,6 +18,7 @@ from perception.estimation.flashtrack.base import (
     flash_range_sigma,
     frame_time,
     repeat_motion,
+    stratified_subset,
 )
 from perception.estimation.registration import ModelCloud, RegistrationResult, icp, prepare_model
 from perception.geometry import check_rigid
@@ -27,17 +28,19 @@ from perception.targets import TargetModel
 FloatArray = npt.NDArray[np.float64]
 IndexArray = npt.NDArray[np.intp]
 
-__all__ = ["MOTION_MODELS", "IcpFlashTracker", "Motion"]
+__all__ = ["MOTION_MODELS", "SAMPLINGS", "IcpFlashTracker", "Motion", "Sampling"]
 
 Motion = Literal["previous", "centroid", "constant_velocity"]
 MOTION_MODELS: tuple[str, ...] = ("previous", "centroid", "constant_velocity")
+Sampling = Literal["uniform", "stratified"]
+SAMPLINGS: tuple[str, ...] = ("uniform", "stratified")
 
 
 class IcpFlashTracker:
     """ICP on each flash frame from a predicted pose (a :class:`~.base.FlashTracker`).
 
-    Per frame: a uniform random subset of the frame's points (``n_points``; TriDAR-like sparse
-    sensing, the cost of ICP bounded whatever the range), ICP
+    Per frame: a random subset of the frame's points (``n_points``, drawn as ``sampling`` says;
+    TriDAR-like sparse sensing, the cost of ICP bounded whatever the range), ICP
     (:func:`perception.estimation.registration.icp`) from the prediction, and the result as the
     new estimate (ICP's Cramer-Rao covariance with it). The measured rays go to ICP when it
     matches along them (``icp_config.match_along_rays``); otherwise it takes each point's ray
@@ -52,6 +55,9 @@ class IcpFlashTracker:
             :class:`~perception.config.FlashLidarConfig`.
         icp_config: ICP settings; default :class:`~perception.config.ICPConfig` (point-to-plane).
         n_points: points per frame given to ICP (None: all of them).
+        sampling: how the subset is drawn: ``"uniform"`` (any ``n_points`` of the frame, equally
+            likely) or ``"stratified"`` (one from each of ``n_points`` runs of the frame's
+            row-major pixel order, :func:`~.base.stratified_subset`: even cover of the target).
         motion: the prediction when :meth:`track` gets none: ``"previous"`` (the last estimate:
             the seed's baseline), ``"centroid"`` (the last estimate moved by the shift of the
             frame's centroid since the previous frame: the flash frames of seed 003 close in by
@@ -85,6 +91,7 @@ class IcpFlashTracker:
         motion: Motion = "centroid",
         rng: np.random.Generator | int | None = None,
         model_seed: int = 0,
+        sampling: Sampling = "uniform",
     ) -> None:
         if not isinstance(target, TargetModel):
             # a ValueError, as for every other bad argument here
@@ -93,12 +100,15 @@ class IcpFlashTracker:
             raise ValueError(f"n_points={n_points}; expected >= 6 points per frame or None (all)")
         if motion not in MOTION_MODELS:
             raise ValueError(f"motion={motion!r}; expected one of {list(MOTION_MODELS)}")
+        if sampling not in SAMPLINGS:
+            raise ValueError(f"sampling={sampling!r}; expected one of {list(SAMPLINGS)}")
         self.target = target
         self.flash = flash or FlashLidarConfig()
         self.icp_config = icp_config or ICPConfig()
         self.sigma = flash_range_sigma(self.flash)
         self.n_points = None if n_points is None else int(n_points)
         self.motion: Motion = motion
+        self.sampling: Sampling = sampling
         self.rng = (
             rng
             if isinstance(rng, np.random.Generator)
@@ -178,6 +188,8 @@ class IcpFlashTracker:
         n = len(frame)
         if self.n_points is None or n <= self.n_points:
             return None
+        if self.sampling == "stratified":
+            return stratified_subset(n, self.n_points, self.rng)
         return self.rng.choice(n, self.n_points, replace=False)
 
     def _measure(

@@ -99,6 +99,7 @@ class GlideslopeController:
         self.safety = CollisionAvoidance(
             dt, self.dock, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
             model=model, lever=port_lever_dock(cfg) if model is not None else (0.0, 0.0, 0.0),
+            lateral_max_m=env.lateral_offset_max_m,
         )
         self.bearing = BearingGuidance(
             cfg, self.g.bearing, model=model,

@@ -201,6 +201,7 @@ class LQRController:
             g.safety,
             model=(self.A, self.B) if self.R is not None else None,
             lever=port_lever_dock(cfg) if self.R is not None else (0.0, 0.0, 0.0),
+            lateral_max_m=env.lateral_offset_max_m,
         )
         n = mean_motion(cfg.dynamics.orbit.altitude_m)
         R = self.R

@@ -197,7 +197,7 @@ class SyncController:
         env = cfg.env.envelope
         self.safety = CollisionAvoidance(
             self.dt, self.d, (env.axial_speed_min_m_s, env.axial_speed_max_m_s), self.g.safety,
-            axis="radial",
+            axis="radial", lateral_max_m=env.lateral_offset_max_m,
         )
         self.reset()
 

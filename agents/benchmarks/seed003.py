@@ -8,6 +8,9 @@ written in the seed's frames (X toward the target, Y right, Z down; roll about X
 with :func:`perception.estimation.linetrack.T_from_seed_pose`; errors are reported back in those
 frames.
 
+Long module: one benchmark's scenes, tracker rows, timing floor, tables and plots, each used only
+here; split, every part would import the others.
+
 Trackers: the public flash trackers of :mod:`perception.estimation.flashtrack` (one row per
 :data:`~perception.estimation.flashtrack.FLASH_TRACKER_KINDS` name, built by
 :func:`~perception.estimation.flashtrack.make_flash_tracker`; their docstrings say how each

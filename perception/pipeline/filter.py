@@ -389,7 +389,8 @@ class PoseFilter:
         e = np.asarray(axis, dtype=np.float64).reshape(3)
         n = float(np.linalg.norm(e))
         if not (np.isfinite(n) and n > 0 and np.isfinite(sigma)):
-            raise ValueError(f"floor_velocity(axis={e.tolist()}, sigma={sigma}); expected a finite non-zero axis and a finite sigma")
+            raise ValueError(f"floor_velocity(axis={e.tolist()}, sigma={sigma}); expected a finite "
+                             "non-zero axis and a finite sigma")
         e = e / n
         gap = float(sigma) ** 2 - float(e @ self.P[3:6, 3:6] @ e)
         if gap > 0.0:

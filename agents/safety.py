@@ -51,12 +51,15 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed
     loop ``kv`` tracks it, plus the rotating-frame terms. ``s_hold`` is the controller's hold
     distance plus the protection level of a degraded pose. A degraded pose inside the commit range
-    aborts (it backs away too) unless its protection level, added to the lateral offset, still puts
-    the port inside the capture envelope's lateral tolerance (``lateral_max_m``): then it commits,
-    since braking a few centimetres from the port cannot stop the chaser and only turns a capture
-    into a too-slow contact (a generated assembly's track turned degraded 4.6 cm from contact,
-    protection level 8.0 cm against an 8 cm alert limit and a 10 cm envelope; the abort touched at
-    0.029 m/s, a collision). A lost pose off axis or too fast aborts.
+    aborts (it backs away too) unless the chaser is closer than the avoidance law can stop from
+    (``closing / kv``) and the pose's protection level, added to the lateral offset, still puts the
+    port inside the capture envelope's lateral tolerance (``lateral_max_m``): then it commits
+    (latched), since braking there cannot stop the chaser and only turns a capture into a too-slow
+    contact (a generated assembly's track turned degraded 4.6 cm from contact, protection level
+    8.0 cm against an 8 cm alert limit and a 10 cm envelope; the abort touched at 0.029 m/s, a
+    collision). Further out it still aborts: a 2.5 m plate's pose turned degraded 34 cm out with its
+    bound growing 5 mm/s, and a commit there would have outlived the bound. A lost pose off axis or
+    too fast aborts.
 """
 
 from __future__ import annotations
@@ -236,6 +239,7 @@ class CollisionAvoidance:
         self._a_prev = np.zeros(3)
         self._w_prev = np.zeros(3)
         self._pl = 0.0  # protection level of the latest degraded pose [m]
+        self._degraded_commit = False  # committed on a degraded pose (latched, module docstring)
 
     # ------------------------------------------------------------------ state
     def port(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -285,6 +289,7 @@ class CollisionAvoidance:
                 self._lost_s = 0.0
             self._lost = 0
             self._pl = 0.0
+            self._degraded_commit = False
             return self.mode
         self._healthy = 0
         if degraded and not self.has_fix and x_dot is not None and valid[_VEL] > 0.5:
@@ -303,7 +308,8 @@ class CollisionAvoidance:
             self.dr.reset_to(xr, xr_dot, w)
             self._pl = float(obs[_S["protection_level"]][0])
         committed = self.mode == "commit" or (self.mode == "nominal" and self._committable(w))
-        if committed and (not degraded or self._captured_within_bound(w)):
+        if committed and (not degraded or self._degraded_commit or self._captured_within_bound(w)):
+            self._degraded_commit = self._degraded_commit or degraded  # latched like a loss's
             self.mode = "commit"
             return self.mode
         if self.mode in ("nominal", "commit") and self.port(w)[0][2] <= self.g.commit_range_m:
@@ -336,12 +342,14 @@ class CollisionAvoidance:
         )
 
     def _captured_within_bound(self, w: FloatArray) -> bool:
-        """A degraded pose whose protection level, added to the dead-reckoned lateral offset,
-        still puts the port inside the capture envelope's lateral tolerance (``lateral_max_m``)."""
+        """A degraded pose closer than the avoidance law can stop from (``closing / kv``) whose
+        protection level, added to the dead-reckoned lateral offset, still puts the port inside
+        the capture envelope's lateral tolerance (``lateral_max_m``)."""
         if self.lateral_max_m is None:
             return False
-        p, _ = self.port(w)
-        return float(np.hypot(p[0], p[1])) + self._pl <= self.lateral_max_m
+        p, p_dot = self.port(w)
+        stop_m = max(-float(p_dot[2]), 0.0) / self.g.kv
+        return p[2] <= stop_m and float(np.hypot(p[0], p[1])) + self._pl <= self.lateral_max_m
 
     # ------------------------------------------------------------------ law
     def accel(self, obs: npt.NDArray[np.floating], hold_m: float | None = None) -> FloatArray:

@@ -607,37 +607,41 @@ def test_a_degraded_pose_is_not_flown_in_on(make: type) -> None:
 
 @pytest.mark.parametrize("make", [GlideslopeController, LQRController])
 def test_in_the_commit_range_a_clean_loss_or_a_capturable_degraded_pose_coasts(make: type) -> None:
-    """At 0.3 m closing at 0.07 m/s: a blackout on the axis coasts into contact (zero thrust), and
-    so does a pose turned degraded whose protection level plus its lateral offset still fits the
-    10 cm capture tolerance (braking there cannot stop the chaser); a degraded pose whose bound
-    does not fit, or a lost track 0.1 m off the axis, aborts (backs away at once)."""
+    """Closing at 0.07 m/s: a blackout on the axis at 0.3 m coasts into contact (zero thrust).
+    A pose turned degraded coasts only closer than the avoidance law can stop from (0.07 / kv =
+    0.175 m) and while its protection level plus its lateral offset fits the 10 cm capture
+    tolerance; a degraded pose at 0.3 m, or one whose bound does not fit, or a lost track 0.1 m
+    off the axis, aborts (backs away at once)."""
     cfg = load_config("final_approach", env__perception="truth")
     assert cfg.env.envelope.lateral_offset_max_m == pytest.approx(0.10)
-    lost = _approach_obs(0.3, 0.07)
-    lost[S["valid"]] = 0.0
-    lost[S["port_position_dock"]] = 0.0
-    lost[S["port_velocity_dock"]] = 0.0
-    # (lateral offset [m], fault, protection level of the degraded pose [m], coasts)
-    cases = [(0.0, "blackout", 0.0, True), (0.0, "degraded", 0.085, True),
-             (0.03, "degraded", 0.085, False), (0.0, "degraded", 0.3, False),
-             (0.1, "blackout", 0.0, False)]
-    for lateral, kind, pl, coast in cases:
+    # (distance [m], lateral offset [m], fault, protection level of the degraded pose [m], coasts)
+    cases = [(0.3, 0.0, "blackout", 0.0, True), (0.1, 0.0, "degraded", 0.085, True),
+             (0.3, 0.0, "degraded", 0.085, False), (0.1, 0.03, "degraded", 0.085, False),
+             (0.1, 0.0, "degraded", 0.3, False), (0.3, 0.1, "blackout", 0.0, False)]
+    for z, lateral, kind, pl, coast in cases:
         ctrl = make(cfg)
-        healthy = _approach_obs(0.3, 0.07, lateral)
+        assert 0.1 < 0.07 / ctrl.safety.g.kv < 0.3
+        healthy = _approach_obs(z, 0.07, lateral)
         for _ in range(3):
             ctrl(healthy)
+        bad = healthy.copy()
         if kind == "degraded":
-            bad = healthy.copy()
             bad[S["valid"]][7] = 1.0
             bad[S["protection_level"]] = pl
         else:
-            bad = lost
+            bad[S["valid"]] = 0.0
+            bad[S["port_position_dock"]] = 0.0
+            bad[S["port_velocity_dock"]] = 0.0
         act = ctrl(bad).astype(np.float64)
         if coast:
-            assert ctrl.safety.mode == "commit", (lateral, kind, pl)
+            assert ctrl.safety.mode == "commit", (z, lateral, kind, pl)
             np.testing.assert_allclose(act, 0.0, atol=1e-6)
+            if kind == "degraded":  # latched: a bound that grows past the tolerance does not abort
+                bad[S["protection_level"]] = 0.3
+                ctrl(bad)
+                assert ctrl.safety.mode == "commit"
         else:
-            assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating, (lateral, kind, pl)
+            assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating, (z, lateral, kind, pl)
             assert act[2] < -0.1
 
 

@@ -17,6 +17,7 @@ from perception.estimation.flashtrack.base import (
     check_frame,
     flash_range_sigma,
     frame_time,
+    IndexArray,
     repeat_motion,
     stratified_subset,
 )
@@ -26,7 +27,6 @@ from perception.sensing.pointcloud import PointCloud
 from perception.targets import TargetModel
 
 FloatArray = npt.NDArray[np.float64]
-IndexArray = npt.NDArray[np.intp]
 
 __all__ = ["MOTION_MODELS", "SAMPLINGS", "IcpFlashTracker", "Motion", "Sampling"]
 

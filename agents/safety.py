@@ -52,14 +52,19 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     loop ``kv`` tracks it, plus the rotating-frame terms. ``s_hold`` is the controller's hold
     distance plus the protection level of a degraded pose. A degraded pose inside the commit range
     aborts (it backs away too) unless the chaser is closer than the avoidance law can stop from
-    (``closing / kv``) and the pose's protection level, added to the lateral offset, still puts the
-    port inside the capture envelope's lateral tolerance (``lateral_max_m``): then it commits
-    (latched), since braking there cannot stop the chaser and only turns a capture into a too-slow
-    contact (a generated assembly's track turned degraded 4.6 cm from contact, protection level
-    8.0 cm against an 8 cm alert limit and a 10 cm envelope; the abort touched at 0.029 m/s, a
-    collision). Further out it still aborts: a 2.5 m plate's pose turned degraded 34 cm out with its
-    bound growing 5 mm/s, and a commit there would have outlived the bound. A lost pose off axis or
-    too fast aborts.
+    (``closing / kv``) and the port is bounded inside the capture envelope's lateral tolerance
+    (``lateral_max_m``): then it commits (latched), since braking there cannot stop the chaser and
+    only turns a capture into a too-slow contact. The lateral offset is the dead-reckoned one, and
+    two honest bounds can put it inside: the degraded pose's protection level, or the last healthy
+    fix's protection level grown at ``commit_lateral_speed`` over the time since that fix plus the
+    time to contact (the bound a lost pose's commit relies on). Either is enough. Measured: a
+    generated assembly's track turned degraded 4.6 cm from contact (protection level 8.0 cm, alert
+    limit 8 cm, envelope 10 cm; an abort touched at 0.029 m/s, a collision); on Rendezvous-v0 a
+    false slide of the port patch 3-7 cm from contact raised the protection level from 4 cm to
+    19 cm in one step, 7 of 100 runs aborted into too-slow contacts, and the last fix (0.5 s old,
+    4 cm) bounded the port within 7 cm. Further out it still aborts: a 2.5 m plate's pose turned
+    degraded 34 cm out with its bound growing 5 mm/s, and a commit there would have outlived the
+    bound. A lost pose off axis or too fast aborts.
 """
 
 from __future__ import annotations
@@ -195,8 +200,8 @@ class CollisionAvoidance:
         lever: (3,) the reference point from the target's centre of mass in that frame [m]
             (with ``model``).
         lateral_max_m: the capture envelope's lateral tolerance [m]: a pose that turns degraded
-            inside the commit range still commits when its protection level plus the lateral
-            offset fits inside it (``None``: a degraded pose there always aborts).
+            inside the stopping distance still commits when the port is bounded inside it (module
+            docstring; ``None``: a degraded pose there always aborts).
 
     Usage per step: ``mode = ca.update(obs, x, x_dot, port_offset)`` with the controller's
     reference point measured in this observation (ignored unless the pose is valid), then
@@ -239,6 +244,8 @@ class CollisionAvoidance:
         self._a_prev = np.zeros(3)
         self._w_prev = np.zeros(3)
         self._pl = 0.0  # protection level of the latest degraded pose [m]
+        self._pl_fix = 0.0  # protection level of the last healthy fix [m]
+        self._since_fix_s = 0.0  # time since the last healthy fix [s]
         self._degraded_commit = False  # committed on a degraded pose (latched, module docstring)
 
     # ------------------------------------------------------------------ state
@@ -268,6 +275,7 @@ class CollisionAvoidance:
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         if self.has_fix:
             self.dr.predict(self._a_prev, self._w_prev, self.dt)
+            self._since_fix_s += self.dt
         self._w_prev = w
         pose = x is not None and x_dot is not None and valid[_POS] > 0.5 and valid[_VEL] > 0.5
         degraded = valid[_DEGRADED] > 0.5 and x is not None and valid[_POS] > 0.5
@@ -277,6 +285,7 @@ class CollisionAvoidance:
                 x_dot_pred = self.dr.state(w)[1]
                 x_dot = x_dot_pred + self.g.k_fix_velocity * (x_dot - x_dot_pred)
             self._take_fix(x, x_dot, w, port_offset)
+            self._pl_fix = float(obs[_S["protection_level"]][0])
             self._healthy += 1
             # the track proves itself for as long as it was lost, up to resume_s
             prove = self.g.resume_s if self.retreating else min(self.g.resume_s, self._lost_s)
@@ -295,6 +304,7 @@ class CollisionAvoidance:
         if degraded and not self.has_fix and x_dot is not None and valid[_VEL] > 0.5:
             # no healthy pose yet: a degraded one is still the best state to brake and back away on
             self._take_fix(x, x_dot, w, port_offset)
+            self._pl_fix = float(obs[_S["protection_level"]][0])
         if not self.has_fix:
             self.mode = "blind"
             return self.mode
@@ -327,6 +337,7 @@ class CollisionAvoidance:
     ) -> None:
         self.dr.fix(x, x_dot, w)
         self.has_fix = True
+        self._since_fix_s = 0.0
         self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
 
     def _committable(self, w: FloatArray) -> bool:
@@ -342,14 +353,19 @@ class CollisionAvoidance:
         )
 
     def _captured_within_bound(self, w: FloatArray) -> bool:
-        """A degraded pose closer than the avoidance law can stop from (``closing / kv``) whose
-        protection level, added to the dead-reckoned lateral offset, still puts the port inside
-        the capture envelope's lateral tolerance (``lateral_max_m``)."""
+        """A degraded pose closer than the avoidance law can stop from (``closing / kv``) with the
+        port bounded inside the capture envelope's lateral tolerance (``lateral_max_m``) by the
+        pose's protection level or by the last healthy fix's, grown over the time since it and
+        the time to contact at ``commit_lateral_speed`` (module docstring)."""
         if self.lateral_max_m is None:
             return False
         p, p_dot = self.port(w)
-        stop_m = max(-float(p_dot[2]), 0.0) / self.g.kv
-        return p[2] <= stop_m and float(np.hypot(p[0], p[1])) + self._pl <= self.lateral_max_m
+        closing = -float(p_dot[2])
+        if closing <= 0.0 or p[2] > closing / self.g.kv:
+            return False
+        coast_s = self._since_fix_s + max(float(p[2]), 0.0) / closing
+        bound = min(self._pl, self._pl_fix + self.g.commit_lateral_speed * coast_s)
+        return float(np.hypot(p[0], p[1])) + bound <= self.lateral_max_m
 
     # ------------------------------------------------------------------ law
     def accel(self, obs: npt.NDArray[np.floating], hold_m: float | None = None) -> FloatArray:

@@ -609,19 +609,27 @@ def test_a_degraded_pose_is_not_flown_in_on(make: type) -> None:
 def test_in_the_commit_range_a_clean_loss_or_a_capturable_degraded_pose_coasts(make: type) -> None:
     """Closing at 0.07 m/s: a blackout on the axis at 0.3 m coasts into contact (zero thrust).
     A pose turned degraded coasts only closer than the avoidance law can stop from (0.07 / kv =
-    0.175 m) and while its protection level plus its lateral offset fits the 10 cm capture
-    tolerance; a degraded pose at 0.3 m, or one whose bound does not fit, or a lost track 0.1 m
-    off the axis, aborts (backs away at once)."""
+    0.175 m) and while the port is bounded inside the 10 cm capture tolerance, by the degraded
+    pose's protection level or by the last healthy fix's grown at 2 cm/s to contact; a degraded
+    pose at 0.3 m, or one neither bound fits, or a lost track 0.1 m off the axis, aborts (backs
+    away at once)."""
     cfg = load_config("final_approach", env__perception="truth")
     assert cfg.env.envelope.lateral_offset_max_m == pytest.approx(0.10)
-    # (distance [m], lateral offset [m], fault, protection level of the degraded pose [m], coasts)
-    cases = [(0.3, 0.0, "blackout", 0.0, True), (0.1, 0.0, "degraded", 0.085, True),
-             (0.3, 0.0, "degraded", 0.085, False), (0.1, 0.03, "degraded", 0.085, False),
-             (0.1, 0.0, "degraded", 0.3, False), (0.3, 0.1, "blackout", 0.0, False)]
-    for z, lateral, kind, pl, coast in cases:
+    # (distance [m], lateral offset [m], fault, protection level of the degraded pose [m], of the
+    # healthy ones before it [m], coasts)
+    cases = [(0.3, 0.0, "blackout", 0.0, 0.03, True), (0.1, 0.0, "degraded", 0.085, 0.03, True),
+             (0.1, 0.0, "degraded", 0.3, 0.03, True), (0.3, 0.0, "degraded", 0.085, 0.03, False),
+             (0.1, 0.03, "degraded", 0.085, 0.06, False), (0.1, 0.0, "degraded", 0.3, 0.08, False),
+             (0.3, 0.1, "blackout", 0.0, 0.03, False)]
+    for z, lateral, kind, pl, pl_fix, coast in cases:
         ctrl = make(cfg)
         assert 0.1 < 0.07 / ctrl.safety.g.kv < 0.3
+        # the last fix's bound at 0.1 m: pl_fix + 0.02 m/s * (one step + 0.1 / 0.07 s to contact)
+        grown = pl_fix + ctrl.safety.g.commit_lateral_speed * (ctrl.safety.dt + 0.1 / 0.07)
+        if kind == "degraded" and z < 0.175:
+            assert (lateral + min(pl, grown) <= 0.1) == coast, (lateral, pl, grown)
         healthy = _approach_obs(z, 0.07, lateral)
+        healthy[S["protection_level"]] = pl_fix
         for _ in range(3):
             ctrl(healthy)
         bad = healthy.copy()
@@ -634,14 +642,14 @@ def test_in_the_commit_range_a_clean_loss_or_a_capturable_degraded_pose_coasts(m
             bad[S["port_velocity_dock"]] = 0.0
         act = ctrl(bad).astype(np.float64)
         if coast:
-            assert ctrl.safety.mode == "commit", (z, lateral, kind, pl)
+            assert ctrl.safety.mode == "commit", (z, lateral, kind, pl, pl_fix)
             np.testing.assert_allclose(act, 0.0, atol=1e-6)
             if kind == "degraded":  # latched: a bound that grows past the tolerance does not abort
                 bad[S["protection_level"]] = 0.3
                 ctrl(bad)
                 assert ctrl.safety.mode == "commit"
         else:
-            assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating, (z, lateral, kind, pl)
+            assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating, (z, lateral, kind, pl, pl_fix)
             assert act[2] < -0.1
 
 

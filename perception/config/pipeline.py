@@ -95,9 +95,10 @@ class IntegrityConfig(StrictModel):
     slide_hold_s: Annotated[Float, Field(ge=0, le=1e6)] = Field(
         0.0, description="a slide the monitor found stays on the registrations this long [s] "
         "after the last probe that found it, whatever the probes between say (0: until the next "
-        "probe). Measured on FlyAround (seed 67): 30 s made it worse (4 valid-but-wrong runs in "
-        "100, 4 stalls); the registrations it deweights are what keeps a track's velocity along "
-        "the weak axis honest"
+        "probe). Measured on FlyAround (seed 67) without slide_velocity_time_s: 30 s made it worse "
+        "(4 valid-but-wrong runs in 100, 4 stalls), the filter's velocity along the weak axis "
+        "going unchallenged; with the velocity floor, 10 s holds a flickering probe's slide "
+        "(configs/missions/fly_around.yaml)"
     )
     slide_velocity_time_s: Annotated[Float, Field(gt=0, le=1e6)] | None = Field(
         None, description="while a slide of sigma s is on the registrations, the filter's "

@@ -38,11 +38,13 @@ last probe that found it, whatever the probes in between say, kept in the target
 new track (a planned restart looks at the same aspect); slides along nearly the same axis
 (within 20 deg) merge at the larger sigma. On a weak aspect the probes flicker (ICP comes back
 from one pair of pushes and not from the next), and a registration 0.25 m off along the truss
-claimed 2 cm in a frame whose probe "held". Holding for 30 s was measured on the fly-around
-campaign and made it worse: with its registrations deweighted along the truss for half a minute
-the filter kept a wrong velocity there unchallenged, and ICP from the drifted prediction then
-settled in another bay (4 runs in 100 valid-but-wrong, 4 stalled, against 1 valid-but-wrong with
-no hold on the same runs). It stays off in every shipped mission.
+claimed 2 cm in a frame whose probe "held". Holding for 30 s without the velocity floor was
+measured on the fly-around campaign and made it worse: with its registrations deweighted along the
+truss for half a minute the filter kept a wrong velocity there unchallenged, and ICP from the
+drifted prediction then settled in another bay (4 runs in 100 valid-but-wrong, 4 stalled, against
+1 with no hold). With the floor on, the velocity stays uncertain while the slide is held, and
+``fly_around`` holds for the floor's time (10 s): a run whose probes swung between 1.5 cm and
+0.6 m went 1 m off under its protection level with no hold, and 8 cm off with it.
 """
 
 from __future__ import annotations

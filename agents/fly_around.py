@@ -4,13 +4,21 @@ The scripted controller of ``TriDAR/FlyAround-v0`` (seed 000 section 5, STS-131'
 fly-around of the ISS). It reads only the observation and mission knowledge (the target holds
 LVLH, its design data: the port's place and axis; the chaser's pointing attitude law):
 
-**Estimate.** A healthy pose (position, velocity and attitude valid, not degraded) gives the
-chaser's position and velocity about the target's centre of mass in LVLH: the port's attitude in
+**Estimate.** A usable pose (position, velocity and attitude valid, and not degraded, or degraded
+with a protection level under a third of the standoff band) gives the chaser's position and velocity about the target's centre of mass in LVLH: the port's attitude in
 the docking frame turns the docking frame into LVLH (``R_lvlh_dock = R_lvlh_port R_dock_port^T``),
 the port's position and rate in the docking frame, with the gyro's rate relative to LVLH, give
 ``r = r_port - R_lvlh_dock (p + dock)`` and ``r' = -R_lvlh_dock (p' + w x (p + dock))``. Without
-a healthy pose the controller dead-reckons ``[r, r']`` with the CW model and its own commanded
+a usable pose the controller dead-reckons ``[r, r']`` with the CW model and its own commanded
 accelerations, and takes its attitude from the pointing law at that estimate.
+
+"Degraded" is the docking's verdict: the protection level passed an alert limit set for the port
+(centimetres to decimetres). Circling at 100 m inside a 15 m band with a 40 m keep-out sphere, a
+pose bounded within a few metres is plenty, so the controller weighs the bound against its own
+tolerance rather than the docking's. Measured on FlyAround (seed 83): where the ISS-like truss
+slides, the held slide kept the pose degraded at metre-level bounds; a controller waiting for a
+healthy pose there stopped its reference, stayed at the same aspect, and timed out (2 of the
+first 8 runs).
 
 **Law** (LVLH accelerations; the CW model's own accelerations at the estimate are cancelled, so
 the loops act on a double integrator):
@@ -22,7 +30,7 @@ the loops act on a double integrator):
   circle of radius ``standoff_m`` in the orbital plane at ``v_circle`` (in ``direction``), starting
   from the chaser's own phase; its centripetal acceleration is fed forward and a PD
   (``omega_n``, ``zeta``) tracks it. The reference waits while the chaser lags it by more than
-  ``max_lag_m`` or while no healthy pose has come for ``hold_s``, so a lost track holds the chaser
+  ``max_lag_m`` or while no usable pose has come for ``hold_s``, so a lost track holds the chaser
   on the circle rather than flying it round blind.
 
 The environment ends the episode (``completed``) once the swept angle reaches the configured sweep
@@ -65,7 +73,9 @@ class FlyAroundGains:
     zeta: float = 0.9
     kp_axis: float = 0.004  # [1/s^2] back onto the port axis while departing
     kd_axis: float = 0.15  # [1/s]
-    hold_s: float = 10.0  # [s] without a healthy pose for this long the reference stops
+    hold_s: float = 10.0  # [s] without a usable pose for this long the reference stops
+    usable_pl_fraction: float = 1.0 / 3.0  # a degraded pose whose protection level is under this
+    # fraction of the standoff band is still flown on (module docstring)
 
 
 class FlyAroundController:
@@ -78,7 +88,7 @@ class FlyAroundController:
 
     Attributes:
         phase: ``"depart"`` or ``"circle"``.
-        law: which law flew the last step (``"pose"`` on a healthy pose, ``"dead_reckoning"``).
+        law: which law flew the last step (``"pose"`` on a usable pose, ``"dead_reckoning"``).
         r, v: (3,) the estimated chaser position and velocity about the target's centre of mass,
             LVLH [m, m/s].
     """
@@ -133,20 +143,22 @@ class FlyAroundController:
         return r, v, R_ld
 
     def update(self, obs: npt.NDArray[np.floating]) -> bool:
-        """Take this observation (or dead-reckon); True on a healthy pose."""
+        """Take this observation (or dead-reckon); True on a usable pose (module docstring)."""
         valid = obs[_S["valid"]]
-        healthy = (valid[_POSITION] > 0.5 and valid[_VELOCITY] > 0.5 and valid[_ATTITUDE] > 0.5
-                   and valid[_DEGRADED] < 0.5)
+        bounded = (valid[_DEGRADED] < 0.5 or float(obs[_S["protection_level"]][0])
+                   <= self.g.usable_pl_fraction * self.fa.band_m)
+        usable = (valid[_POSITION] > 0.5 and valid[_VELOCITY] > 0.5 and valid[_ATTITUDE] > 0.5
+              and bounded)
         if self.has_estimate:
             s = self.phi @ np.concatenate([self.r, self.v]) + self.gamma @ self._a_prev
             self.r, self.v = s[:3], s[3:]
-        if healthy:
+        if usable:
             self.r, self.v, _ = self._from_pose(obs)
             self.has_estimate = True
             self.blind_s = 0.0
         else:
             self.blind_s += self.dt
-        return healthy
+        return usable
 
     # ------------------------------------------------------------------ law
     def accel_lvlh(self) -> FloatArray:
@@ -181,13 +193,13 @@ class FlyAroundController:
         return a - cw_acceleration(self.n, r, v)
 
     def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
-        healthy = self.update(obs)
-        self.law = "pose" if healthy else "dead_reckoning"
+        usable = self.update(obs)
+        self.law = "pose" if usable else "dead_reckoning"
         if not self.has_estimate:
             self._a_prev = np.zeros(3)
             return np.zeros(3, dtype=np.float32)
         a = self.accel_lvlh()
-        R_ld = self._from_pose(obs)[2] if healthy else pointing_frame(self.r)[0]
+        R_ld = self._from_pose(obs)[2] if usable else pointing_frame(self.r)[0]
         mass = self.dry + self.prop0 * float(obs[_S["fuel_fraction"]][0])
         thrust = saturate(R_ld.T @ a * mass / self.max_thrust)
         self._a_prev = R_ld @ thrust * self.max_thrust / mass

@@ -13,7 +13,7 @@ import tridar_env  # noqa: F401  (registers the ids)
 from agents.controllers import make_controller
 from perception.config import EnvConfig, load_config
 from tridar_env.dynamics import mean_motion
-from tridar_env.env import DockingEnv
+from tridar_env.env import DockingEnv, observation_slices
 from tridar_env.schedule import decision_frames
 from tridar_env.world import World
 
@@ -117,6 +117,39 @@ def test_fly_around_on_truth_completes_and_its_rewards_add_up() -> None:
     assert math.degrees(np.unwrap(phases)[-1] - phases[0]) == pytest.approx(info["swept_deg"], abs=1e-6)
     assert min_r_after_depart > fa.keep_out_radius_m + 30.0
     assert info["delta_v"] < 10.0
+
+
+def test_fly_around_flies_on_a_degraded_pose_bounded_inside_its_band_and_holds_without_one() -> None:
+    """"Degraded" is the docking's verdict; circling at 100 m in a 15 m band the controller still
+    flies on a pose bounded within a third of the band (its estimate is the pose's), and without
+    one it dead-reckons and, after ``hold_s``, stops its reference round the circle."""
+    env = gym.make("TriDAR/FlyAround-v0", perception="truth")
+    ctrl = make_controller("fly_around", env.unwrapped.cfg)
+    obs, _ = env.reset(seed=4)
+    ctrl.reset()
+    while ctrl.phase != "circle":
+        obs, *_ = env.step(ctrl(obs))
+    S = observation_slices()
+    limit = ctrl.g.usable_pl_fraction * ctrl.fa.band_m
+    assert limit == pytest.approx(5.0)
+    for pl, usable in [(0.9 * limit, True), (1.1 * limit, False)]:
+        c = make_controller("fly_around", env.unwrapped.cfg)
+        c.reset()
+        c(obs)  # a healthy fix first
+        bad = obs.copy()
+        bad[S["valid"]][7] = 1.0
+        bad[S["protection_level"]] = pl
+        bad[S["port_position_dock"].start] += np.float32(1.0)  # shifted: taken only if usable
+        theta = []
+        # (the frozen observation lags the reference by 0.6 m/s: under max_lag_m for 15 s)
+        for _ in range(round((c.g.hold_s + 2.0) / c.dt)):
+            c(bad)
+            theta.append(c.theta_ref)
+        assert c.law == ("pose" if usable else "dead_reckoning"), pl
+        r_pose = c._from_pose(bad)[0]
+        assert (np.linalg.norm(c.r - r_pose) < 1e-6) == usable
+        moving = theta[-1] != theta[-2]
+        assert moving == usable  # without a usable pose for hold_s the reference stops
 
 
 def test_fly_around_keep_out_and_out_of_bounds_end_the_episode() -> None:

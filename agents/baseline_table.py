@@ -1,7 +1,7 @@
 """The baseline table (``tridar-env evaluate --table SPEC``): scripted controllers and learned
 policies on truth, truth plus noise and the full pipeline, one line per row and perception.
 
-A spec YAML (model :class:`BaselineSpec`, ``configs/baselines.yml``) lists rows::
+A spec YAML (model :class:`BaselineSpec`, ``configs/baselines.yaml``) lists rows::
 
     rows:
       - {env_id: TriDAR/FinalApproach-v0, policy: glideslope, perceptions: [truth, truth+noise, tridar]}

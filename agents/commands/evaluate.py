@@ -25,7 +25,7 @@ def add(p: argparse.ArgumentParser) -> None:
                    help="model.zip written by 'tridar-env train', or its run folder (or --table SPEC)")
     p.add_argument("--table", type=Path, default=None, metavar="SPEC",
                    help="instead of MODEL: the baseline table of a spec YAML (e.g. "
-                        "configs/baselines.yml), every row on each of its perceptions")
+                        "configs/baselines.yaml), every row on each of its perceptions")
     p.add_argument("--only", type=int, action="append", default=None, metavar="ROW",
                    help="with --table: only row ROW of the spec (counted from 0; repeatable)")
     p.add_argument("--env-id", default=None,
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
                          "of them: a policy to evaluate, or a baseline spec")
     if args.model is None and args.table is None:
         raise ValueError("no MODEL and no --table; expected a model.zip (or its run folder) or "
-                         "--table SPEC (e.g. configs/baselines.yml)")
+                         "--table SPEC (e.g. configs/baselines.yaml)")
     if args.table is not None:
         return run_table(args)
     if args.only is not None:

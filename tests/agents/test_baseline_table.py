@@ -196,7 +196,7 @@ def test_spec_refuses_a_missing_policy_and_a_bad_selection(tmp_path: Path) -> No
 def test_shipped_spec_covers_every_id_on_truth_noise_and_pipeline() -> None:
     from tridar_env.registration import ENV_IDS
 
-    spec = bt.load_spec(CONFIG_DIR / "baselines.yml")  # validates every line's mission as well
+    spec = bt.load_spec(CONFIG_DIR / "baselines.yaml")  # validates every line's mission as well
     assert {r.env_id for r in spec.rows} == set(ENV_IDS)
     for r in spec.rows:
         assert {"truth", "truth+noise", "tridar"} <= set(r.perceptions), r

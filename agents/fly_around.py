@@ -30,8 +30,9 @@ the loops act on a double integrator):
   circle of radius ``standoff_m`` in the orbital plane at ``v_circle`` (in ``direction``), starting
   from the chaser's own phase; its centripetal acceleration is fed forward and a PD
   (``omega_n``, ``zeta``) tracks it. The reference waits while the chaser lags it by more than
-  ``max_lag_m`` or while no usable pose has come for ``hold_s``, so a lost track holds the chaser
-  on the circle rather than flying it round blind.
+  ``max_lag_m`` or while no usable pose has come for ``hold_s`` (a point at rest, which the chaser
+  then closes on), so a lost track holds the chaser on the circle rather than flying it round
+  blind.
 
 The environment ends the episode (``completed``) once the swept angle reaches the configured sweep
 inside the standoff band.
@@ -183,10 +184,14 @@ class FlyAroundController:
             w = fa.direction * g.v_circle / fa.standoff_m
             ref = fa.standoff_m * np.array([math.cos(self.theta_ref), math.sin(self.theta_ref), 0.0])
             lag = float(np.linalg.norm(ref - r))
-            if lag <= g.max_lag_m and self.blind_s <= g.hold_s:
+            moving = lag <= g.max_lag_m and self.blind_s <= g.hold_s
+            if moving:
                 self.theta_ref += w * self.dt
                 ref = fa.standoff_m * np.array([math.cos(self.theta_ref), math.sin(self.theta_ref), 0.0])
-            v_ref = np.cross([0.0, 0.0, w], ref) if self.blind_s <= g.hold_s else np.zeros(3)
+            # a waiting reference is a point at rest: with its circling velocity kept, it pulled a
+            # chaser that had coasted past it to the PD's balance kd v / kp (54 m at 0.6 m/s)
+            # ahead of it, beyond max_lag_m, and neither moved again (a run stalled 4,000 s)
+            v_ref = np.cross([0.0, 0.0, w], ref) if moving else np.zeros(3)
             a_ref = np.cross([0.0, 0.0, w], v_ref)
             kp, kd = g.omega_n**2, 2.0 * g.zeta * g.omega_n
             a = a_ref + kp * (ref - r) + kd * (v_ref - v)

@@ -152,6 +152,36 @@ def test_fly_around_flies_on_a_degraded_pose_bounded_inside_its_band_and_holds_w
         assert moving == usable  # without a usable pose for hold_s the reference stops
 
 
+def test_fly_around_reference_waiting_for_a_chaser_off_it_is_closed_on() -> None:
+    """A chaser 30 m ahead of its reference on the circle (over ``max_lag_m``: the reference had
+    stopped while the chaser coasted on dead reckoning): the reference waits as a point at rest,
+    the law (on its double integrator: the CW terms are cancelled) closes on it, and the
+    reference moves on. (Kept circling, the waiting reference pulled the chaser to the PD's
+    balance kd v / kp ~ 54 m ahead of it, and neither moved again: a run stalled 4,000 s.)"""
+    from tridar_env.dynamics import cw_acceleration
+
+    cfg = load_config("fly_around", env__perception="truth")
+    ctrl = make_controller("fly_around", cfg)
+    ctrl.reset()
+    R, g = ctrl.fa.standoff_m, ctrl.g
+    ctrl.phase, ctrl.has_estimate, ctrl.theta_ref = "circle", True, 0.0
+    ahead = ctrl.fa.direction * 30.0 / R
+    ctrl.r = R * np.array([math.cos(ahead), math.sin(ahead), 0.0])
+    ctrl.v = np.zeros(3)
+    moved_at = None
+    for k in range(round(600.0 / ctrl.dt)):
+        theta0 = ctrl.theta_ref
+        a = ctrl.accel_lvlh() + cw_acceleration(ctrl.n, ctrl.r, ctrl.v)
+        ctrl.v = ctrl.v + a * ctrl.dt
+        ctrl.r = ctrl.r + ctrl.v * ctrl.dt
+        if ctrl.theta_ref != theta0 and moved_at is None:
+            moved_at = k * ctrl.dt
+    assert moved_at is not None and moved_at < 300.0
+    ref = R * np.array([math.cos(ctrl.theta_ref), math.sin(ctrl.theta_ref), 0.0])
+    assert np.linalg.norm(ref - ctrl.r) < g.max_lag_m  # following it round
+    assert math.degrees(ctrl.fa.direction * ctrl.theta_ref) > 45.0
+
+
 def test_fly_around_keep_out_and_out_of_bounds_end_the_episode() -> None:
     env = DockingEnv("fly_around", perception="truth")
     env.reset(seed=0)

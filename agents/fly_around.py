@@ -6,8 +6,9 @@ LVLH, its design data: the port's place and axis; the chaser's pointing attitude
 
 **Estimate.** A usable pose (position, velocity and attitude valid, and not degraded, or degraded
 with a protection level under a third of the standoff band) gives the chaser's position and
-velocity about the target's centre of mass in LVLH: the port's attitude in the docking frame turns the docking frame into LVLH (``R_lvlh_dock = R_lvlh_port R_dock_port^T``),
-the port's position and rate in the docking frame, with the gyro's rate relative to LVLH, give
+velocity about the target's centre of mass in LVLH: the port's attitude in the docking frame
+turns the docking frame into LVLH (``R_lvlh_dock = R_lvlh_port R_dock_port^T``), the port's
+position and rate in the docking frame, with the gyro's rate relative to LVLH, give
 ``r = r_port - R_lvlh_dock (p + dock)`` and ``r' = -R_lvlh_dock (p' + w x (p + dock))``. Without
 a usable pose the controller dead-reckons ``[r, r']`` with the CW model and its own commanded
 accelerations, and takes its attitude from the pointing law at that estimate.

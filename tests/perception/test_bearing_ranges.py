@@ -218,8 +218,8 @@ def test_slide_monitor_takes_a_second_basin_at_its_offset_and_holds_a_slide(iss,
     assert mon.apply(pts, cloud, res, hold + period, icp_cfg, 10) is res
     assert mon.held == []
 
-    # No hold (the default): the next probe decides.
-    mon = _monitor_at_85_m(iss)[1]
+    # No hold (the default; fly_around holds 10 s): the next probe decides.
+    mon = _monitor_at_85_m(iss, pipeline__integrity__slide_hold_s=0.0)[1]
     monkeypatch.setattr(slides, "icp", second_basin)
     mon.apply(pts, cloud, res, 0.0, icp_cfg, 0)
     assert mon.apply(pts, cloud, res, 0.5 * period, icp_cfg, 10) is not res  # until the next probe

@@ -445,22 +445,14 @@ def format_markdown(lines: Sequence[Line]) -> str:
     return "\n".join(out)
 
 
-def _json_safe(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    return x
-
-
 def rows_document(lines: Sequence[Line], spec: BaselineSpec, spec_path: str | Path) -> dict[str, Any]:
     """What ``rows.json`` holds: the spec as given and, per line, its settings and figures."""
     keep = ("runs", "docked", "succeeded", "success_rate", "wilson95_low", "wilson95_high",
             "errors", "causes", "delta_v_median_m_s", "contact_closing_speed_median_m_s",
             "contact_lateral_offset_p90_m")
-    return _json_safe({
+    from agents.outputs import json_safe
+
+    return json_safe({
         "spec_path": str(spec_path),
         "spec": spec.model_dump(mode="json"),
         "lines": [{

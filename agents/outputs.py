@@ -20,6 +20,7 @@ import contextlib
 import errno
 import fcntl
 import json
+import math
 import os
 import re
 import socket
@@ -27,6 +28,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 __all__ = [
     "LOCK_FILE",
@@ -38,6 +41,7 @@ __all__ = [
     "claim_folder",
     "fsync_dir",
     "is_marked",
+    "json_safe",
     "lock_folder",
     "pid_alive",
     "read_marker",
@@ -262,3 +266,16 @@ def remove_stale_tmp(folder: str | Path) -> list[Path]:
             p.unlink(missing_ok=True)
             removed.append(p)
     return removed
+
+
+def json_safe(o: Any) -> Any:
+    """Plain JSON: numpy scalars to Python, NaN/inf to null (dicts, lists and tuples walked)."""
+    if isinstance(o, dict):
+        return {k: json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_safe(v) for v in o]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o

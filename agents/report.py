@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agents.episode import EpisodeResult, Policy, run_episode
+from agents.outputs import json_safe
 from perception.config import MissionConfig, save_config
 from perception.geometry import invert
 from tridar_env.env import observation_slices
@@ -574,20 +575,7 @@ def _write_files(record: EpisodeRecord, out: Path, video: bool, fps: int) -> dic
         if v is not None:
             files["video"] = v
     s["files"] = {k: p.name for k, p in files.items()}
-    (out / "summary.json").write_text(json.dumps(_json_safe(s), indent=2) + "\n")
+    (out / "summary.json").write_text(json.dumps(json_safe(s), indent=2) + "\n")
     (out / "summary.txt").write_text(format_summary(s, out) + "\n")
     files["summary"] = out / "summary.json"
     return files
-
-
-def _json_safe(o: Any) -> Any:
-    """Plain JSON: numpy scalars to Python, NaN/inf to null."""
-    if isinstance(o, dict):
-        return {k: _json_safe(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_json_safe(v) for v in o]
-    if isinstance(o, np.generic):
-        o = o.item()
-    if isinstance(o, float) and not np.isfinite(o):
-        return None
-    return o

@@ -284,8 +284,7 @@ class CollisionAvoidance:
             if self.has_fix:  # average the estimate's velocity noise through the model
                 x_dot_pred = self.dr.state(w)[1]
                 x_dot = x_dot_pred + self.g.k_fix_velocity * (x_dot - x_dot_pred)
-            self._take_fix(x, x_dot, w, port_offset)
-            self._pl_fix = float(obs[_S["protection_level"]][0])
+            self._take_fix(x, x_dot, w, port_offset, obs)
             self._healthy += 1
             # the track proves itself for as long as it was lost, up to resume_s
             prove = self.g.resume_s if self.retreating else min(self.g.resume_s, self._lost_s)
@@ -303,8 +302,7 @@ class CollisionAvoidance:
         self._healthy = 0
         if degraded and not self.has_fix and x_dot is not None and valid[_VEL] > 0.5:
             # no healthy pose yet: a degraded one is still the best state to brake and back away on
-            self._take_fix(x, x_dot, w, port_offset)
-            self._pl_fix = float(obs[_S["protection_level"]][0])
+            self._take_fix(x, x_dot, w, port_offset, obs)
         if not self.has_fix:
             self.mode = "blind"
             return self.mode
@@ -333,11 +331,13 @@ class CollisionAvoidance:
         return self.mode
 
     def _take_fix(
-        self, x: FloatArray, x_dot: FloatArray, w: FloatArray, port_offset: FloatArray | None
+        self, x: FloatArray, x_dot: FloatArray, w: FloatArray, port_offset: FloatArray | None,
+        obs: npt.NDArray[np.floating],
     ) -> None:
         self.dr.fix(x, x_dot, w)
         self.has_fix = True
         self._since_fix_s = 0.0
+        self._pl_fix = float(obs[_S["protection_level"]][0])
         self._port_offset = np.zeros(3) if port_offset is None else np.asarray(port_offset, float)
 
     def _committable(self, w: FloatArray) -> bool:

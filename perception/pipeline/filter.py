@@ -386,16 +386,29 @@ class PoseFilter:
         velocity the scans never observed, then ignores the registrations that would correct
         it.
         """
+        self._floor(slice(3, 6), axis, sigma, "floor_velocity")
+
+    def floor_position(self, axis: npt.ArrayLike, sigma: float) -> None:
+        """Raise the position variance along ``axis`` (sensor coordinates) to at least
+        ``sigma**2`` [m^2], as :meth:`floor_velocity` does the velocity's.
+
+        The same slide's registrations are not independent: their error along it is one offset
+        seen again, so averaging ``n`` of them does not divide its variance by ``n``. Floored,
+        the position stays as uncertain along the slide as one registration says it is.
+        """
+        self._floor(slice(0, 3), axis, sigma, "floor_position")
+
+    def _floor(self, block: slice, axis: npt.ArrayLike, sigma: float, name: str) -> None:
         e = np.asarray(axis, dtype=np.float64).reshape(3)
         n = float(np.linalg.norm(e))
         if not (np.isfinite(n) and n > 0 and np.isfinite(sigma)):
-            raise ValueError(f"floor_velocity(axis={e.tolist()}, sigma={sigma}); expected a finite "
+            raise ValueError(f"{name}(axis={e.tolist()}, sigma={sigma}); expected a finite "
                              "non-zero axis and a finite sigma")
         e = e / n
-        gap = float(sigma) ** 2 - float(e @ self.P[3:6, 3:6] @ e)
+        gap = float(sigma) ** 2 - float(e @ self.P[block, block] @ e)
         if gap > 0.0:
             P = self.P.copy()
-            P[3:6, 3:6] += gap * np.outer(e, e)
+            P[block, block] += gap * np.outer(e, e)
             self.P = P
 
     @property

@@ -204,6 +204,7 @@ class TrackingMode:
         tri.slides.loosen(tri.filter)
         upd = tri.filter.update(t_ref, res.T_sensor_target, cov)
         if upd.accepted:
+            tri.slides.pin(tri.filter)
             self.clear_rejects()
             tri.n_updates += 1
             tri.last_pose_t = t_ref
@@ -225,6 +226,7 @@ class TrackingMode:
             return tri.logic.judge(True, res.fitness, res.inlier_rmse, expected,
                                    res.T_sensor_target, None, filter_accepted=False)
         tri.filter = restart
+        tri.slides.pin(tri.filter)
         self.clear_rejects()
         tri.stats.filter_reinits += 1
         tri.n_updates = 1

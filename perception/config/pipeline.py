@@ -108,11 +108,12 @@ class IntegrityConfig(StrictModel):
         "truss under a 0.7 m protection level) (None: off)"
     )
     slide_position_floor: bool = Field(
-        False, description="while a slide of sigma s is on the registrations, the filter's "
-        "position along it stays uncertain by at least s after each update: the same slide's "
-        "registrations share one offset, and after a filter restart on four of them, averaged as "
-        "independent, a fly-around pose was 1.49 m off along the ISS-like truss under a 1.14 m "
-        "protection level (its slide held at 2.78 m sigma) (False: off)"
+        False, description="while a slide of sigma s is held, the state a frame publishes is "
+        "uncertain by at least s along it (a consider covariance; the filter's gain is left "
+        "alone): the same slide's registrations share one offset, and after a filter restart on "
+        "four of them, averaged as independent, a fly-around pose was 1.49 m off along the "
+        "ISS-like truss under a 1.14 m protection level (its slide held at 2.78 m sigma) "
+        "(False: off)"
     )
     slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
         0.001, description="slide probe's push: max(3 sigma, this * range) [m]"

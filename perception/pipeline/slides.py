@@ -31,11 +31,17 @@ velocity 4-11 cm/s wrong along the ISS-like truss for 100 s and drifted 1-25 m u
 protection level). While a slide of sigma ``s`` is on, the velocity variance along it is raised to
 ``(s / tau)**2`` before each prediction (a consider-style floor, injected as process noise): the
 prediction then carries that uncertainty into the position, the registrations pull the track
-back, and the protection level covers what they cannot settle. **Its position can be kept
-uncertain too** (``integrity.slide_position_floor``): after each update, the position variance
-along a slide is raised to ``s**2``. The registrations of one slide share one offset; after a
-filter restart on four of them, averaged as independent, a fly-around pose was 1.49 m off along
-the truss under a 1.14 m protection level while the slide was held at 2.78 m sigma.
+back, and the protection level covers what they cannot settle.
+
+**The published position along a slide can be kept uncertain too**
+(``integrity.slide_position_floor``): the registrations of one slide share one offset, and after
+a filter restart on four of them, averaged as independent, a fly-around pose was 1.49 m off along
+the truss under a 1.14 m protection level while the slide was held at 2.78 m sigma. The state a
+frame publishes has its position variance along each held slide raised to at least ``s**2`` (a
+consider covariance): the bound covers the shared offset, and the live filter's gain is left
+alone. (Flooring the live filter instead made it follow each registration at half gain along the
+truss: in the first 6 runs of a campaign, 3 wandered 1-15 m off, degraded, and one took 3.3 times
+as long to fly round.)
 
 **A slide can be held** (``integrity.slide_hold_s``, default 0: until the next probe) after the
 last probe that found it, whatever the probes in between say, kept in the target frame across a
@@ -175,13 +181,14 @@ class SlideMonitor:
         for a, s, _ in self.held:
             f.floor_velocity(f.R @ a, s / tau)
 
-    def pin(self, f: PoseFilter) -> None:
-        """After ``f`` took a registration: keep its position along each slide uncertain by the
-        slide's sigma (``integrity.slide_position_floor``; module docstring)."""
-        if not self.tri.pc.integrity.slide_position_floor or not self.held or not f.initialized:
-            return
-        for a, s, _ in self.held:
-            f.floor_position(f.R @ a, s)
+    def pin(self, f: PoseFilter) -> PoseFilter:
+        """``f`` (the copy of the filter a frame publishes) with its position along each held
+        slide uncertain by at least the slide's sigma (``integrity.slide_position_floor``;
+        module docstring); the live filter's gain is left alone."""
+        if self.tri.pc.integrity.slide_position_floor and self.held and f.initialized:
+            for a, s, _ in self.held:
+                f.floor_position(f.R @ a, s)
+        return f
 
     def inflate(self, res: RegistrationResult) -> RegistrationResult:
         """``res`` with each held slide's ``sigma**2`` added along its axis (none: ``res`` itself)."""

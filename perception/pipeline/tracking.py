@@ -188,7 +188,7 @@ class TrackingMode:
         lost = tri.logic.record(t, verdict)
         self.after_loss(lost, t)
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
-                          t_ref, len(cloud), fitness=res.fitness, filt=tri.filter.copy(),
+                          t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
@@ -204,7 +204,6 @@ class TrackingMode:
         tri.slides.loosen(tri.filter)
         upd = tri.filter.update(t_ref, res.T_sensor_target, cov)
         if upd.accepted:
-            tri.slides.pin(tri.filter)
             self.clear_rejects()
             tri.n_updates += 1
             tri.last_pose_t = t_ref
@@ -226,7 +225,6 @@ class TrackingMode:
             return tri.logic.judge(True, res.fitness, res.inlier_rmse, expected,
                                    res.T_sensor_target, None, filter_accepted=False)
         tri.filter = restart
-        tri.slides.pin(tri.filter)
         self.clear_rejects()
         tri.stats.filter_reinits += 1
         tri.n_updates = 1

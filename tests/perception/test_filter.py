@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from perception.geometry import make_T, pose_error
 from perception.pipeline.filter import EgoMotion, PoseFilter, RangeFilter
 from perception.pipeline.integrity import integrity_factor
-from perception.geometry import make_T, pose_error
 
 
 def _truth(t: float, p0, v, R0, w) -> np.ndarray:

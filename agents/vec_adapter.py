@@ -16,10 +16,9 @@ SB3's protocol:
 
 So environment ``i`` flies, seed for seed and action for action, the episodes of
 ``gymnasium.make(id, **kwargs)`` reset with ``seed + i`` and then reset without a seed whenever an
-episode ends (``DummyVecEnv``'s sequence). Episode lengths, terminations, truncations, causes
-and every episode's first observation are identical; later observations agree to round-off (now
-and then the last bit of a float32 component) and rewards to ~1e-14, because
-``TruthVectorEnv``'s batched CW products round differently from the single env's.
+episode ends (``DummyVecEnv``'s sequence). Observations (terminal ones included), rewards, episode
+lengths, terminations, truncations and causes are identical, bit for bit (``TruthVectorEnv``
+performs the single env's floating-point operations in its order);
 ``tests/agents/test_vec_adapter.py`` holds the two together.
 
 The per-environment ``infos`` carry what ``TruthVectorEnv`` reports (``termination``, ``t``,

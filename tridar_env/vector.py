@@ -5,23 +5,34 @@ vectorises across processes (``gymnasium.make_vec(..., vectorization_mode="async
 stand-ins (``perception="truth"`` and ``"truth+noise"``) are a few dozen small matrix products per
 step, and there Python's overhead per environment dominates: this class steps ``num_envs``
 environments as ``(num_envs, ...)`` arrays instead, with the physics, rewards, terminations and
-observations of :class:`~tridar_env.env.DockingEnv` (tests hold the two to round-off, step by
-step, seed by seed).
+observations of :class:`~tridar_env.env.DockingEnv`, bit for bit (tests hold the two equal step
+by step, seed by seed).
 
     >>> import gymnasium as gym, tridar_env
     >>> envs = gym.make_vec("TriDAR/FinalApproach-v0", num_envs=64,
     ...                     vectorization_mode="vector_entry_point", perception="truth")
     >>> obs, info = envs.reset(seed=0)
     >>> obs.shape
-    (64, 33)
+    (64, 36)
 
 Environment ``i`` reset with ``seed=s`` is ``DockingEnv`` reset with ``seed=s + i`` (as in
 Gymnasium's ``SyncVectorEnv``); a finished environment is reset by the next call to ``step``
 (``AutoresetMode.NEXT_STEP``), which ignores its action and returns its first observation.
 
+Bitwise parity: every row is computed with the single environment's floating-point operations in
+its order. Its small matrix products go to BLAS, whose kernels fuse multiply-adds and sum in an
+order of their own (which differs between CPU kernels), so no elementwise formula reproduces them.
+But numpy's ``matmul`` over a stack calls BLAS once per item with that item's strides: a stack of
+the single environment's operands, laid out as it lays them out (a transposed view stays a
+transposed view, the 3x3 block of a 4x4 stays a block), rounds every row as its call does. A copied
+transpose, ``einsum`` or an explicit sum of products does not. Its plain-float formulas
+(``fast_cross``, ``fast_quat_to_matrix``, the propellant) are written out per element, and where it
+uses Python's ``math.hypot``, ``atan2`` and ``acos`` (numpy's round differently in the last bit) so
+does this class, element by element.
+
 Scope: CW relative motion (``dynamics.orbit.model: cw``) and the ideal chaser attitude law (the
 3-axis thrust action); every target attitude mode. Initial states come from the same
-:meth:`World.reset <tridar_env.world.World.reset>` as the single environment, and a tumbling
+:meth:`World.reset <tridar_env.world.World.reset>` as the single environment, and a turning
 target's attitude from the same integrator, so only the per-step arithmetic is batched.
 ``info`` holds arrays: ``t``, ``termination`` (``""`` while running), ``delta_v``,
 ``propellant_kg``, ``clipped_actions``, ``truth_r_lvlh``, ``truth_v_lvlh`` and the ``reward_*``
@@ -40,8 +51,6 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from scipy.spatial.transform import Rotation
 
-from perception.geometry import matrix_to_quat
-from tridar_env.dynamics import G0
 from tridar_env.env import (
     CAUSES,
     OBS_DIM,
@@ -58,27 +67,123 @@ from tridar_env.world import ContactState, World, hull_touches_mesh
 FloatArray = npt.NDArray[np.float64]
 
 _SUPPORTED_PERCEPTION = ("truth", "truth+noise")
-_Z = np.array([0.0, 0.0, 1.0])
 _S = observation_slices()
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+# ---------------------------------------------------------------------- the single env's products
+# Each is one BLAS call per row (numpy's matmul loop), the call the single env makes for that row
+# when the operands have its strides; ``_T`` is its ``.T`` (a view, never a copy).
+def _T(M: FloatArray) -> FloatArray:
+    """Transposed view of a stack of matrices, (..., i, j) -> (..., j, i)."""
+    return np.swapaxes(M, -1, -2)
 
 
 def _mv(M: FloatArray, v: FloatArray) -> FloatArray:
-    """Batched matrix-vector product: (N, 3, 3) or (3, 3) with (N, 3) -> (N, 3)."""
-    if M.ndim == 2:
-        return v @ M.T
-    return np.einsum("nij,nj->ni", M, v)
+    """Rows of ``M @ v`` (gemv): (N, i, j) or (i, j) with (N, j) or (j,) -> (N, i)."""
+    return np.matmul(M, v[..., None])[..., 0]
 
 
+def _vm(v: FloatArray, M: FloatArray) -> FloatArray:
+    """Rows of ``v @ M`` (gemv): (N, i) with (i, j) -> (N, j)."""
+    return np.matmul(v[..., None, :], M)[..., 0, :]
+
+
+def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Rows of ``a @ b`` for vectors (ddot): (N, i) with (N, i) -> (N,)."""
+    return np.matmul(a[..., None, :], b[..., :, None])[..., 0, 0]
+
+
+def _pose(R: FloatArray, r: FloatArray | None = None) -> FloatArray:
+    """(N, 4, 4) transforms from (N, 3, 3) rotations and (N, 3) translations (``world._pose``)."""
+    T = np.empty((R.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = 0.0 if r is None else r
+    T[:, 3] = _LAST_ROW
+    return T
+
+
+# ---------------------------------------------------------------------- the single env's floats
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise cross product of (N, 3) arrays (``numpy.cross`` costs ~60 us a call)."""
+    """Row-wise ``fast_cross``: (N, 3) x (N, 3) -> (N, 3)."""
     a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
     b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    np.subtract(a1 * b2, a2 * b1, out=out[:, 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[:, 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[:, 2])
+    return out
 
 
-def _mtv(M: FloatArray, v: FloatArray) -> FloatArray:
-    """Batched transposed product ``M^T v``: (N, 3, 3) with (N, 3) -> (N, 3)."""
-    return np.einsum("nji,nj->ni", M, v)
+def _quat_to_matrix(q: FloatArray) -> FloatArray:
+    """Row-wise ``fast_quat_to_matrix``: (N, 4) scalar first -> (N, 3, 3)."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    s = 2.0 / (w * w + x * x + y * y + z * z)
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    R = np.empty((q.shape[0], 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = 1.0 - yy - zz, xy - wz, xz + wy
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = xy + wz, 1.0 - xx - zz, yz - wx
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = xz - wy, yz + wx, 1.0 - xx - yy
+    return R
+
+
+def _shepperd(R: FloatArray, tr: FloatArray, branch: int) -> FloatArray:
+    """``fast_matrix_to_quat``'s unnormalised (w, x, y, z) of one of its four branches (0-2: the
+    largest diagonal element, 3: the trace), for rows (N, 3, 3) with traces (N,)."""
+    r00, r01, r02 = R[:, 0, 0], R[:, 0, 1], R[:, 0, 2]
+    r10, r11, r12 = R[:, 1, 0], R[:, 1, 1], R[:, 1, 2]
+    r20, r21, r22 = R[:, 2, 0], R[:, 2, 1], R[:, 2, 2]
+    q = np.empty((R.shape[0], 4))
+    if branch == 0:
+        q[:, 0], q[:, 1], q[:, 2], q[:, 3] = r21 - r12, 1.0 - tr + 2.0 * r00, r10 + r01, r20 + r02
+    elif branch == 1:
+        q[:, 0], q[:, 1], q[:, 2], q[:, 3] = r02 - r20, r01 + r10, 1.0 - tr + 2.0 * r11, r21 + r12
+    elif branch == 2:
+        q[:, 0], q[:, 1], q[:, 2], q[:, 3] = r10 - r01, r02 + r20, r12 + r21, 1.0 - tr + 2.0 * r22
+    else:
+        q[:, 0], q[:, 1], q[:, 2], q[:, 3] = 1.0 + tr, r21 - r12, r02 - r20, r10 - r01
+    return q
+
+
+def _matrix_to_quat(R: FloatArray) -> FloatArray:
+    """Row-wise ``fast_matrix_to_quat`` (Shepperd's method, its branch per row): (N, 3, 3) ->
+    (N, 4) canonical, scalar first."""
+    r00, r11, r22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = r00 + r11 + r22
+    # Its if/elif chain: the later assignments are the earlier branches.
+    branch = np.full(R.shape[0], 3)
+    branch[r22 >= tr] = 2
+    branch[(r11 >= r22) & (r11 >= tr)] = 1
+    branch[(r00 >= r11) & (r00 >= r22) & (r00 >= tr)] = 0
+    kinds = np.unique(branch)
+    if kinds.size == 1:  # the usual case: one branch for every row
+        q = _shepperd(R, tr, int(kinds[0]))
+    else:
+        q = np.empty((R.shape[0], 4))
+        for k in kinds.tolist():
+            rows = branch == k
+            q[rows] = _shepperd(R[rows], tr[rows], k)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    n[w < 0.0] *= -1.0
+    return q / n[:, None]
+
+
+def _hypot(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``math.hypot`` per element (``numpy.hypot`` differs in the last bit)."""
+    return np.array([math.hypot(x, y) for x, y in zip(a.tolist(), b.tolist())], dtype=np.float64)
+
+
+def _atan2(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``math.atan2`` per element (numpy's vectorised ``arctan2`` differs in the last bit)."""
+    return np.array([math.atan2(x, y) for x, y in zip(a.tolist(), b.tolist())], dtype=np.float64)
+
+
+def _misalignment_deg(cosang: FloatArray) -> FloatArray:
+    """``math.degrees(math.acos(c))`` per element, as ``World.contact``."""
+    return np.array([math.degrees(math.acos(c)) for c in cosang.tolist()], dtype=np.float64)
 
 
 class TruthVectorEnv(VectorEnv):
@@ -140,7 +245,8 @@ class TruthVectorEnv(VectorEnv):
         self.cfg = cfg
         self.num_envs = num_envs
         # One single environment as the reference of spaces, mounts and bounds, and one World per
-        # environment for its initial-state draws and (tumbling) target attitude.
+        # environment for its initial-state draws and (turning) target attitude. The constant
+        # operands are theirs, with their layouts (see the module docstring).
         proto = DockingEnv(cfg)
         self.target = proto.target
         self.single_action_space = proto.action_space
@@ -152,39 +258,36 @@ class TruthVectorEnv(VectorEnv):
         w0 = self.worlds[0]
         self.dt = w0.dt
         self.n = w0.n
-        self._phi_T = w0._trans.phi.T.copy()
-        self._gamma_T = w0._trans.gamma.T.copy()
+        self._phi_T = w0._trans.phi.T
+        self._gamma_T = w0._trans.gamma.T
         ch = cfg.dynamics.chaser
         self._ch = ch
-        self._isp_g0 = ch.isp_s * G0
-        self._thrust_in_body = ch.thrust_frame == "body"
-        self._hull = float(ch.hull_radius_m)
+        self._isp_g0 = w0.mass._isp_g0
+        self._thrust_in_body = w0._thrust_in_body
+        self._hull = w0._hull_radius
         self._reach = w0._mesh_reach
         self._T_chaser_sensor = w0.T_chaser_sensor
+        self._t_chaser_sensor = w0._t_chaser_sensor
         self._T_chaser_dock = w0.T_chaser_dock
         self._R_target_dock = w0._R_target_dock
-        self._T_target_port = np.asarray(self.target.T_target_port, dtype=np.float64)
+        self._T_target_port = w0._T_target_port
+        self._n_lvlh = w0._n_lvlh
         self._T_dock_sensor = proto._T_dock_sensor
         self._obs_low = proto._obs_low64
         self._obs_high = proto._obs_high64
         self._att_mode = cfg.dynamics.target_attitude.mode
-        e = cfg.env
-        self._sigmas = (
-            (e.truth_noise_position_m, e.truth_noise_velocity_m_s,
-             math.radians(e.truth_noise_attitude_deg), math.radians(e.truth_noise_rate_deg_s))
-            if cfg.env.perception == "truth+noise" else (0.0, 0.0, 0.0, 0.0)
-        )
-        self._noisy = any(s > 0 for s in self._sigmas)
-        self._ref_point = (
-            self._T_target_port[:3, 3].copy() if e.truth_noise_reference == "port" else np.zeros(3)
-        )
+        observer = proto.observer
+        self._sigmas = observer.sigmas
+        self._noisy = observer.noisy
+        self._ref_point = observer.ref_point  # None: the target origin
+        self._port = observer.port
+        self._integrity = observer.integrity
         self._gyro_sigma = math.radians(ch.gyro_noise_deg_s)
-        ig = cfg.pipeline.integrity
-        # The truth stand-in's errors have a constant covariance, so its protection level is too.
-        self._pl = truth_protection_level(
-            self._sigmas, np.eye(3), self._T_target_port[:3, 3],
-            self._ref_point if e.truth_noise_reference == "port" else None, ig.risk)
-        self._al = (ig.alert_limit_m, ig.alert_limit_range_m)
+        # Applied at the port, the errors' protection level does not depend on the attitude.
+        self._pl = (
+            truth_protection_level(self._sigmas, np.eye(3), self._port, self._ref_point, self._integrity[0])
+            if self._ref_point is not None else None
+        )
         proto.close()
         N = num_envs
         self._rngs = [seeding.np_random(None)[0] for _ in range(N)]
@@ -196,6 +299,10 @@ class TruthVectorEnv(VectorEnv):
         self._bias = np.zeros((N, 3))
         self._R_lt = np.tile(np.eye(3), (N, 1, 1))
         self._w_t = np.zeros((N, 3))  # target angular velocity relative to LVLH, LVLH axes
+        # The frames the target's attitude fixes (World.R_lvlh_chaser, T_lvlh_target, T_lvlh_port).
+        self._R_lc = np.tile(np.eye(3), (N, 1, 1))
+        self._T_lt = np.tile(np.eye(4), (N, 1, 1))
+        self._T_lp = np.tile(np.eye(4), (N, 1, 1))
         self._err = np.zeros((N, 12))
         self._t_err = np.zeros(N)
         self._prev_distance = np.zeros(N)
@@ -239,12 +346,21 @@ class TruthVectorEnv(VectorEnv):
             self._bias[i] = w._gyro_bias
             self._R_lt[i] = w.R_lvlh_target
             self._w_t[i] = w.omega_target_lvlh
+        self._attitude_frames(idx)
         self._dv[idx] = 0.0
         self._t[idx] = 0.0
         self._steps[idx] = 0
         c = self._contact(idx)
         self._prev_distance[idx] = c["distance"]
         self._prev_lateral[idx] = c["lateral"]
+
+    def _attitude_frames(self, idx: npt.NDArray[np.intp]) -> None:
+        """The frames of environments ``idx`` that follow from the target's attitude alone."""
+        R_lt = self._R_lt[idx]
+        self._R_lc[idx] = np.matmul(R_lt, self._R_target_dock)  # the ideal law: docking faces port
+        T_lt = _pose(R_lt)
+        self._T_lt[idx] = T_lt
+        self._T_lp[idx] = np.matmul(T_lt, self._T_target_port)
 
     # ------------------------------------------------------------------ step
     def step(
@@ -296,24 +412,24 @@ class TruthVectorEnv(VectorEnv):
         return out
 
     def _physics(self, idx: npt.NDArray[np.intp], thrust: FloatArray) -> None:
-        """One frame of ``World.step`` for environments ``idx``: thrust, propellant, CW, attitude."""
+        """One frame of ``World.step`` for environments ``idx``: thrust, propellant
+        (``ChaserMass.apply``), CW (``CWPropagator.step``), attitude."""
         if idx.size == 0:
             return
-        R_lc = self._R_lt[idx] @ self._R_target_dock
-        f = _mv(R_lc, thrust) if self._thrust_in_body else thrust
-        f = np.clip(f, -self._ch.max_thrust_n, self._ch.max_thrust_n)
-        magnitude = np.sqrt(np.einsum("ni,ni->n", f, f))
-        need = magnitude / self._isp_g0 * self.dt
+        f = _mv(self._R_lc[idx], thrust) if self._thrust_in_body else thrust
+        f = np.minimum(np.maximum(f, -self._ch.max_thrust_n), self._ch.max_thrust_n)
+        f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
+        need = np.sqrt(f0 * f0 + f1 * f1 + f2 * f2) / self._isp_g0 * self.dt
         prop = self._prop[idx]
         short = need > prop
         if short.any():
-            f[short] *= (prop[short] / need[short])[:, None]
+            f[short] = f[short] * (prop[short] / need[short])[:, None]
             need = np.where(short, prop, need)
         m_before = self._ch.dry_mass_kg + prop
         accel = f / m_before[:, None]
         self._prop[idx] = np.maximum(prop - need, 0.0)
-        self._dv[idx] += np.sqrt(np.einsum("ni,ni->n", f, f)) / m_before * self.dt
-        self._x[idx] = self._x[idx] @ self._phi_T + accel @ self._gamma_T
+        self._dv[idx] += np.sqrt(_dot(f, f)) / m_before * self.dt
+        self._x[idx] = _vm(self._x[idx], self._phi_T) + _vm(accel, self._gamma_T)
         self._t[idx] += self.dt
         if self._att_mode != "lvlh_hold":
             for i in idx.tolist():
@@ -322,31 +438,35 @@ class TruthVectorEnv(VectorEnv):
                 w._invalidate()
                 self._R_lt[i] = w.R_lvlh_target
                 self._w_t[i] = w.omega_target_lvlh
+            self._attitude_frames(idx)
 
     # ------------------------------------------------------------------ truth geometry
     def _contact(self, idx: npt.NDArray[np.intp]) -> dict[str, npt.NDArray[Any]]:
-        """``World.contact``, the dock-to-port distance and whether the docking interface meets
-        the port (``DockingEnv._port_contact``) for environments ``idx``."""
-        R_lt = self._R_lt[idx]
+        """``World.contact``, the dock-to-port distance (``DockingEnv._distance``) and whether
+        the docking interface meets the port (``DockingEnv._port_contact``) for environments
+        ``idx``. The lateral speed and misalignment are only read where it meets the port (the
+        capture envelope), so only evaluated there (NaN elsewhere)."""
         r, v = self._x[idx, :3], self._x[idx, 3:]
-        R_lc = R_lt @ self._R_target_dock
-        R_lp = R_lt @ self._T_target_port[:3, :3]
-        p_port = _mv(R_lt, np.broadcast_to(self._T_target_port[:3, 3], r.shape))
-        p_dock = _mv(R_lc, np.broadcast_to(self._T_chaser_dock[:3, 3], r.shape)) + r
+        T_lp = self._T_lp[idx]
+        T_ld = np.matmul(_pose(self._R_lc[idx], r), self._T_chaser_dock)
+        p_port, p_dock = T_lp[:, :3, 3], T_ld[:, :3, 3]
+        R_pl = _T(T_lp[:, :3, :3])
         dp = p_dock - p_port
-        d = _mtv(R_lp, dp)
+        d = _mv(R_pl, dp)
         w = self._w_t[idx]  # the ideal chaser turns with the target
-        v_rel = v + _cross(w, p_dock - r) - _cross(w, p_port)
-        vd = _mtv(R_lp, v_rel)
-        z_dock = R_lc[:, :, 2]
-        cosang = np.clip(-np.einsum("ni,ni->n", z_dock, R_lp[:, :, 2]), -1.0, 1.0)
-        ax, lat = d[:, 2], np.hypot(d[:, 0], d[:, 1])
+        vd = _mv(R_pl, (v + _cross(w, p_dock - r)) - _cross(w, p_port))
+        ax, lat = d[:, 2], _hypot(d[:, 0], d[:, 1])
+        port = (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull)
+        lateral_speed, misalignment = np.full(idx.size, np.nan), np.full(idx.size, np.nan)
+        k = np.flatnonzero(port)
+        if k.size:
+            lateral_speed[k] = _hypot(vd[k, 0], vd[k, 1])
+            cosang = np.clip(-_dot(T_ld[k][:, :3, 2], T_lp[k][:, :3, 2]), -1.0, 1.0)
+            misalignment[k] = _misalignment_deg(cosang)
         return {
-            "axial": ax, "lateral": lat, "closing": -vd[:, 2],
-            "lateral_speed": np.hypot(vd[:, 0], vd[:, 1]),
-            "misalignment": np.degrees(np.arccos(cosang)), "rate": np.zeros(idx.size),
-            "distance": np.sqrt(np.einsum("ni,ni->n", dp, dp)),
-            "port": (-self._hull <= ax) & (ax <= 0.0) & (lat <= self._hull),
+            "axial": ax, "lateral": lat, "closing": -vd[:, 2], "lateral_speed": lateral_speed,
+            "misalignment": misalignment, "rate": np.zeros(idx.size),
+            "distance": np.sqrt(_dot(dp, dp)), "port": port,
         }
 
     def _termination(self, idx: npt.NDArray[np.intp]) -> tuple[npt.NDArray[np.int64], dict[str, Any]]:
@@ -365,15 +485,16 @@ class TruthVectorEnv(VectorEnv):
         )
         code[port] = np.where(inside[port], 1, 2)
         r = self._x[idx, :3]
-        dist = np.sqrt(np.einsum("ni,ni->n", r, r))
+        dist = np.sqrt(_dot(r, r))
         near = np.flatnonzero((code == 0) & (dist <= self._reach))
         if near.size:
-            p_target = _mtv(self._R_lt[idx[near]], r[near])
+            p_target = _mv(_T(self._T_lt[idx[near]][:, :3, :3]), r[near])
             code[near[hull_touches_mesh(self.target, p_target, self._hull)]] = 2
         code[(code == 0) & (dist > env.max_range_m)] = 3
         if env.corridor_half_angle_deg is not None:
-            off = np.degrees(np.arctan2(lat, ax))
-            code[(code == 0) & (ax > 2.0) & (off > env.corridor_half_angle_deg)] = 5
+            ahead = np.flatnonzero((code == 0) & (ax > 2.0))
+            off = np.degrees(_atan2(lat[ahead], ax[ahead]))
+            code[ahead[off > env.corridor_half_angle_deg]] = 5
         code[(code == 0) & (self._prop[idx] <= 0.0)] = 4
         return code, c
 
@@ -435,61 +556,80 @@ class TruthVectorEnv(VectorEnv):
                 gyro[i] = rng.normal(0.0, self._gyro_sigma, 3)
         return self._err, gyro
 
-    def _observe(self, first: npt.NDArray[np.bool_]) -> npt.NDArray[np.float32]:
-        """``DockingEnv._observation`` of the truth (plus noise) state of every environment."""
-        N = self.num_envs
-        R_lt = self._R_lt
+    def _sensor_truth(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``World.sensor_truth`` of every environment: ``T_sensor_target`` (N, 4, 4), the
+        target's velocity and angular velocity in the sensor frame, and the chaser's LVLH
+        angular velocity."""
         r, v = self._x[:, :3], self._x[:, 3:]
-        R_lc = R_lt @ self._R_target_dock
-        w_c = self._w_t  # ideal chaser: turns with the target
-        # World.sensor_truth: T_sensor_target, its velocity and angular velocity.
-        R_ls = R_lc @ self._T_chaser_sensor[:3, :3]
-        r_cs = _mv(R_lc, np.broadcast_to(self._T_chaser_sensor[:3, 3], r.shape))
-        p_ls = r_cs + r
-        R_st = np.swapaxes(R_ls, 1, 2) @ R_lt
-        p = -_mtv(R_ls, p_ls)
-        v_s = v + _cross(w_c, r_cs)
-        w_s = _mtv(R_ls, w_c)
-        vel = -_mtv(R_ls, v_s) - _cross(w_s, p)
-        omega = np.zeros((N, 3))  # R_sl (w_target - w_chaser)
+        R_lc = self._R_lc
+        T_ls = np.matmul(_pose(R_lc, r), self._T_chaser_sensor)
+        R_sl = _T(T_ls[:, :3, :3])
+        T_sl = np.zeros_like(T_ls)  # fast_invert
+        T_sl[:, :3, :3] = R_sl
+        T_sl[:, :3, 3] = -_mv(R_sl, T_ls[:, :3, 3])
+        T_sl[:, 3, 3] = 1.0
+        T_st = np.matmul(T_sl, self._T_lt)
+        w_t = self._w_t
+        w_c = w_t  # the ideal chaser turns with the target
+        v_s = v + _cross(w_c, _mv(R_lc, self._t_chaser_sensor))
+        vel = _mv(R_sl, -v_s) - _cross(_mv(R_sl, w_c), T_st[:, :3, 3])
+        omega = _mv(R_sl, w_t - w_c)
+        return T_st, vel, omega, w_c
+
+    def _observe(self, first: npt.NDArray[np.bool_]) -> npt.NDArray[np.float32]:
+        """``DockingEnv._observation`` of ``TruthObserver``'s state vector of every environment
+        (``state_from_truth``)."""
+        N = self.num_envs
+        T_st, vel, omega, w_c = self._sensor_truth()
+        p = T_st[:, :3, 3].copy()
+        R = T_st[:, :3, :3]
         err, gyro_noise = self._draws(first)
         if self._noisy:
             sp, sv, sa, sw = self._sigmas
-            R_est = Rotation.from_rotvec(sa * err[:, 6:9]).as_matrix() @ R_st
+            R_est = np.matmul(Rotation.from_rotvec(sa * err[:, 6:9]).as_matrix(), R)
             ref = self._ref_point
-            p = p + _mv(R_st, np.broadcast_to(ref, p.shape)) + sp * err[:, 0:3] - _mv(R_est, np.broadcast_to(ref, p.shape))
-            R_st = R_est
+            if ref is None:
+                p = p + sp * err[:, 0:3]
+            else:
+                p = p + _mv(R, ref) + sp * err[:, 0:3] - _mv(R_est, ref)
+            R = R_est
             vel = vel + sv * err[:, 3:6]
             omega = omega + sw * err[:, 9:12]
+        rng_m = np.sqrt(_dot(p, p))
+        risk, al_m, al_range = self._integrity
+        pl = self._pl if self._pl is not None else np.array(
+            [truth_protection_level(self._sigmas, R[i], self._port, None, risk) for i in range(N)])
+        port_s = p + _mv(R, self._port)
+        al = al_m * np.maximum(1.0, np.sqrt(_dot(port_s, port_s)) / al_range)
+        # DockingEnv._observation, from the state vector's quaternion.
+        R_st = _quat_to_matrix(_matrix_to_quat(R))
+        T_dp = np.matmul(np.matmul(self._T_dock_sensor, _pose(R_st, p)), self._T_target_port)
+        R_ds = self._T_dock_sensor[:3, :3]
+        r_port_s = _mv(R_st, self._T_target_port[:3, 3])
         obs = np.zeros((N, OBS_DIM))
         S = _S
         obs[:, S["mode_onehot"].start + 2] = 1.0  # tracking
         obs[:, S["valid"].start:S["valid"].stop - 1] = 1.0  # every field valid
-        R_ds, p_ds = self._T_dock_sensor[:3, :3], self._T_dock_sensor[:3, 3]
-        R_tp, p_tp = self._T_target_port[:3, :3], self._T_target_port[:3, 3]
-        R_dp = R_ds @ R_st @ R_tp
-        r_port_s = _mv(R_st, np.broadcast_to(p_tp, p.shape))
-        obs[:, S["port_position_dock"]] = (r_port_s + p) @ R_ds.T + p_ds
-        port_s = r_port_s + p
-        al = self._al[0] * np.maximum(1.0, np.sqrt(np.einsum("ni,ni->n", port_s, port_s)) / self._al[1])
-        obs[:, S["protection_level"].start] = self._pl
-        obs[:, S["alert_limit"].start] = al
-        obs[:, S["valid"].stop - 1] = self._pl > al  # degraded
-        obs[:, S["port_velocity_dock"]] = (vel + _cross(omega, r_port_s)) @ R_ds.T
-        obs[:, S["q_dock_port"]] = matrix_to_quat(R_dp)
-        obs[:, S["omega_port_dock"]] = omega @ R_ds.T
-        rng_m = np.sqrt(np.einsum("ni,ni->n", p, p))
+        obs[:, S["valid"].stop - 1] = pl > al  # degraded
+        obs[:, S["port_position_dock"]] = T_dp[:, :3, 3]
+        obs[:, S["port_velocity_dock"]] = _mv(R_ds, vel + _cross(omega, r_port_s))
+        obs[:, S["q_dock_port"]] = _matrix_to_quat(T_dp[:, :3, :3])
+        obs[:, S["omega_port_dock"]] = _mv(R_ds, omega)
         obs[:, S["range"].start] = rng_m
-        obs[:, S["range_rate"].start] = np.einsum("ni,ni->n", p, vel) / np.maximum(rng_m, 1e-9)
+        obs[:, S["range_rate"].start] = _dot(p, vel) / np.maximum(rng_m, 1e-9)
         b = S["bearing"].start
-        obs[:, b] = np.arctan2(p[:, 0], p[:, 2])
-        obs[:, b + 1] = np.arctan2(-p[:, 1], np.hypot(p[:, 0], p[:, 2]))
+        obs[:, b] = _atan2(p[:, 0], p[:, 2])
+        obs[:, b + 1] = _atan2(-p[:, 1], _hypot(p[:, 0], p[:, 2]))
         obs[:, S["fitness"].start] = 1.0
         fuel0 = self._ch.propellant_kg
         obs[:, S["fuel_fraction"].start] = self._prop / fuel0 if fuel0 > 0 else 0.0
         obs[:, S["time_fraction"].start] = self._steps / self.cfg.env.max_episode_steps
-        w_body = _mtv(R_lc, w_c + self.n * _Z)
-        obs[:, S["chaser_rate_body"]] = w_body + self._bias + gyro_noise
+        # World.gyro: chaser_angular_velocity_body plus the bias (and the noise).
+        w_body = _mv(_T(self._R_lc), w_c + self._n_lvlh)
+        gyro = w_body + self._bias
+        obs[:, S["chaser_rate_body"]] = gyro + gyro_noise if self._gyro_sigma > 0 else gyro
+        obs[:, S["protection_level"].start] = pl
+        obs[:, S["alert_limit"].start] = al
         np.clip(obs, self._obs_low, self._obs_high, out=obs)
         return obs.astype(np.float32)
 

@@ -9,9 +9,9 @@ from stable_baselines3.common.vec_env import VecMonitor
 
 import tridar_env  # noqa: F401  (registers the ids)
 from agents.vec_adapter import BatchedVecEnv, make_batched_vec_env
+from tests.agents.test_training import TINY as TRAINING_TINY
 from tridar_env.env import OBS_DIM
 from tridar_env.vector import TruthVectorEnv
-from tests.agents.test_training import TINY as TRAINING_TINY
 
 N = 4
 SEED = 7
@@ -69,11 +69,9 @@ def test_episodes_equal_the_single_envs_seed_for_seed(
     same way, with the same final observation (``terminal_observation``), and the next one starts
     from the same first observation (same-step autoreset), for several episodes per environment.
 
-    Observations, terminations, truncations and causes are identical. Rewards agree to 1e-10:
-    ``TruthVectorEnv`` propagates the batch with one matrix product where the single env uses a
-    vector one, and the truth state's last bits differ (~1e-14); that rounding reaches a float32
-    observation component only at its last bit, so those are held to 1 part in 1e6 (the noise
-    itself is 1e-2 to 1e-4 of them: a stream one draw off fails)."""
+    Observations, rewards, terminations, truncations and causes are identical, bit for bit:
+    ``TruthVectorEnv`` performs the single env's floating-point operations in its order (the noise
+    is 1e-2 to 1e-4 of the observations: a stream one draw off fails too)."""
     rng = np.random.default_rng(0)
     actions = 0.3 * rng.uniform(-1.0, 1.0, (steps, N, 3))
     actions[:, :, 2] += TOWARDS_PORT
@@ -89,20 +87,18 @@ def test_episodes_equal_the_single_envs_seed_for_seed(
         for i in range(N):
             last, first, r, term, trunc, cause = ref[i][k + 1]
             assert done[i] == (term or trunc), (k, i)
-            np.testing.assert_allclose(reward[i], r, rtol=0, atol=1e-10)
+            np.testing.assert_array_equal(reward[i], r)
             if done[i]:
                 episodes[i] += 1
                 assert infos[i]["TimeLimit.truncated"] == (trunc and not term)
                 assert infos[i]["termination"] == cause
-                np.testing.assert_allclose(
-                    infos[i]["terminal_observation"], last, rtol=1e-6, atol=1e-9
-                )
-                np.testing.assert_array_equal(obs[i], first)  # a fresh episode: no round-off yet
+                np.testing.assert_array_equal(infos[i]["terminal_observation"], last)
+                np.testing.assert_array_equal(obs[i], first)
             else:
                 assert (
                     "terminal_observation" not in infos[i] and not infos[i]["TimeLimit.truncated"]
                 )
-                np.testing.assert_allclose(obs[i], last, rtol=1e-6, atol=1e-9)
+                np.testing.assert_array_equal(obs[i], last)
     assert episodes.min() >= 2, (
         episodes
     )  # several episodes each: the autoreset streams were checked

@@ -138,6 +138,7 @@ def test_fly_around_flies_on_a_degraded_pose_bounded_inside_its_band_and_holds_w
         c(obs)  # a healthy fix first
         bad = obs.copy()
         bad[S["valid"]][7] = 1.0
+        bad[S["valid"]][:3] = 0.0  # no range either (range-aided flight: the next test)
         bad[S["protection_level"]] = pl
         bad[S["port_position_dock"].start] += np.float32(1.0)  # shifted: taken only if usable
         theta = []
@@ -150,6 +151,52 @@ def test_fly_around_flies_on_a_degraded_pose_bounded_inside_its_band_and_holds_w
         assert (np.linalg.norm(c.r - r_pose) < 1e-6) == usable
         moving = theta[-1] != theta[-2]
         assert moving == usable  # without a usable pose for hold_s the reference stops
+
+
+def _fly_unusable(range_valid: bool, seconds: float) -> tuple[list[float], float, float, str, float]:
+    """FlyAround on truth, circling: the controller's estimate is knocked 8 m out in radius, then
+    for ``seconds`` every pose is degraded beyond a usable bound (the bearing, range and range
+    rate kept or cleared). Returns the truth standoff errors [m], the controller's radius error
+    at the end [m], the reference's advance [deg], the law, and the swept angle gained [deg]."""
+    env = gym.make("TriDAR/FlyAround-v0", perception="truth")
+    ctrl = make_controller("fly_around", env.unwrapped.cfg)
+    obs, info = env.reset(seed=4)
+    ctrl.reset()
+    while ctrl.phase != "circle" or info["swept_deg"] < 20.0:
+        obs, _, term, trunc, info = env.step(ctrl(obs))
+        assert not (term or trunc)
+    S = observation_slices()
+    ctrl.r = ctrl.r * (1.0 + 8.0 / float(np.linalg.norm(ctrl.r)))
+    theta0, swept0, band = ctrl.theta_ref, info["swept_deg"], []
+    for _ in range(round(seconds / ctrl.dt)):
+        bad = obs.copy()
+        bad[S["valid"]][7] = 1.0
+        bad[S["protection_level"]] = 2.0 * ctrl.fa.band_m
+        if not range_valid:
+            bad[S["valid"]][:3] = 0.0
+        obs, _, term, trunc, info = env.step(ctrl(bad))
+        band.append(info["standoff_error_m"])
+        assert not term
+    r_err = float(np.linalg.norm(ctrl.r) - np.linalg.norm(info["truth_r_lvlh"]))
+    return band, r_err, math.degrees(abs(ctrl.theta_ref - theta0)), ctrl.law, info["swept_deg"] - swept0
+
+
+def test_fly_around_without_a_usable_pose_flies_on_on_range_and_holds_without_it() -> None:
+    """Seed 91's stall: where the truss slides the pose stayed unusable for 800 s. With the range
+    and range rate the controller keeps its radius measured (an 8 m radial error in its estimate
+    is taken out), its reference keeps moving, and the chaser sweeps on inside the band; with
+    neither pose nor range it stops its reference after ``hold_s`` and its radius error stays."""
+    band, r_err, advance, law, swept = _fly_unusable(True, 200.0)
+    assert law == "range_aided"
+    assert abs(r_err) < 1.0
+    fa = load_config("fly_around", env__perception="truth").env.fly_around
+    assert max(abs(b) for b in band) < 0.5 * fa.band_m
+    full = math.degrees(0.6 * 200.0 / fa.standoff_m)  # v_circle 0.6 m/s for 200 s
+    assert advance > 0.8 * full and swept > 0.5 * full
+    _, r_err_blind, advance_blind, law_blind, _ = _fly_unusable(False, 200.0)
+    assert law_blind == "dead_reckoning"
+    assert r_err_blind > 4.0
+    assert advance_blind < math.degrees(0.6 * 12.0 / fa.standoff_m)  # hold_s (10 s) and a step
 
 
 def test_fly_around_reference_waiting_for_a_chaser_off_it_is_closed_on() -> None:

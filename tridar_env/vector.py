@@ -1,5 +1,8 @@
 """``TruthVectorEnv``: many docking environments stepped as arrays, for fast training on truth.
 
+Long module: one class whose physics, contact, rewards and observations must each repeat the
+single environment's arithmetic row by row; split up, the parity would be spread over files.
+
 The full TriDAR pipeline is a per-environment program (a scan, a registration, a filter), so it
 vectorises across processes (``gymnasium.make_vec(..., vectorization_mode="async")``). The truth
 stand-ins (``perception="truth"`` and ``"truth+noise"``) are a few dozen small matrix products per

@@ -81,6 +81,7 @@ def summarize(df: Any) -> dict[str, Any]:
         "hmi_steps_total": stat("hmi_steps", np.sum),
         "restarts_total": stat("restarts", np.sum),
         "restarts_reacquired_total": stat("restarts_reacquired", np.sum),
+        "restarts_pending_total": stat("restarts_pending", np.sum),
     }
 
 
@@ -112,8 +113,9 @@ def format_summary(summary: dict[str, Any], title: str | None = None) -> str:
         ("pose available, mean / worst run", (f"{s.get('pose_fraction_mean', np.nan):.2%} / "
                                               f"{s.get('pose_fraction_min', np.nan):.2%}")),
         ("valid-but-wrong steps (error > PL), total", f"{s.get('hmi_steps_total', np.nan):.0f}"),
-        ("planned restarts / reacquired, total", (f"{s.get('restarts_total', np.nan):.0f} / "
-                                                 f"{s.get('restarts_reacquired_total', np.nan):.0f}")),
+        ("planned restarts / reacquired / pending at the end, total", (
+            f"{s.get('restarts_total', np.nan):.0f} / {s.get('restarts_reacquired_total', np.nan):.0f}"
+            f" / {s.get('restarts_pending_total', np.nan):.0f}")),
     ]
     table = format_table([{"metric": m, "value": v} for m, v in rows])
     return f"{title}\n{table}" if title else table

@@ -48,7 +48,10 @@ class EpisodeResult:
         hmi_steps: steps whose pose is valid and not degraded but whose docking-port error
             exceeds the published protection level (hazardously misleading).
         restarts: planned restarts of the pipeline; ``restarts_reacquired``: those followed by a
-            pose again before the episode ended.
+            pose again before the episode ended; ``restarts_pending``: 1 when the last restart
+            had not yet published a pose when the episode ended (a fly-around completed 2 s
+            after a restart, its new track acquired and its first pose still in the sensor's
+            latency), else 0.
         log: per-step columns (:data:`LOG_COLUMNS`) when ``keep_log``.
     """
 
@@ -72,6 +75,7 @@ class EpisodeResult:
     hmi_steps: int = 0
     restarts: int = 0
     restarts_reacquired: int = 0
+    restarts_pending: int = 0
     log: dict[str, list[Any]] = field(default_factory=dict, repr=False)
 
     @property
@@ -197,6 +201,7 @@ def run_episode(
         symmetry_switches=int(getattr(stats, "symmetry_switches", 0)),
         pose_fraction=pose_steps / steps if steps else float("nan"),
         hmi_steps=hmi, restarts=restarts_seen, restarts_reacquired=reacquired,
+        restarts_pending=int(awaiting_pose),
         log=log if keep_log else {},
     )
 

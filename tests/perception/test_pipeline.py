@@ -453,3 +453,41 @@ def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monit
         assert tri.twins.ambiguity_m > 0.3
     else:
         assert np.mean(misleading) > 0.5
+
+
+def test_a_twin_whose_icp_does_not_settle_stays_open(monkeypatch) -> None:
+    """As above (PAH answers with the half-turn twin), but the twin monitor's capped ICP never
+    settles a turn (on a tumbling run the true turn's ICP stopped short at one check): that is no
+    evidence against the twin, so it stays open at its unpolished pose and the protection level
+    keeps the port's offset. (Ruling unsettled twins out closed every twin at once and published
+    0.58 m port error under a 0.31 m protection level.)"""
+    import perception.pipeline.twins as twins_module
+
+    cfg = load_config("tumbling_target", pipeline__symmetry_check_period_s=None,
+                      pipeline__integrity__ambiguity_check_period_s=0.4)
+    target = load_target(cfg.target.name)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(4))
+    fly = Fly(approach_pose(cfg, target, 5.0, lateral=(0.05, -0.03)))
+    r = target.T_target_port[:3, 3]
+    G = tri.pah.near_symmetries()
+    flip = max(G, key=lambda g: np.linalg.norm(g[:3, :3] @ r + g[:3, 3] - r))
+
+    def localize(self, points, rng, **kwargs):
+        return icp(points, tri.model, fly.T(0.0) @ flip, sigma=kwargs.get("sigma", 0.003),
+                   directions=kwargs.get("directions"))
+
+    def unsettled_icp(*args, **kwargs):
+        return dataclasses.replace(icp(*args, **kwargs), converged=False)
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "localize", localize)
+    monkeypatch.setattr(twins_module, "icp", unsettled_icp)
+    hist = _run(tri, fly, 30)
+    port_true = fly.T(0.0)[:3, :3] @ r + fly.T(0.0)[:3, 3]
+    tracked = [sv for _, sv in hist if sv.valid.position]
+    assert len(tracked) >= 20
+    err = np.array([np.linalg.norm(sv.T_sensor_target[:3, :3] @ r + sv.T_sensor_target[:3, 3] - port_true)
+                    for sv in tracked])
+    assert np.median(err) > 0.3
+    assert not any(e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked))
+    assert tri.twins.twins_open and tri.twins.ambiguity_m > 0.3

@@ -414,13 +414,10 @@ def test_the_filter_restarts_only_on_rejected_registrations_that_agree(monkeypat
                 assert err < sv.protection_level, (t, err, sv.protection_level)
 
 
-@pytest.mark.parametrize("monitor", [True, False])
-def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monitor: bool) -> None:
-    """PAH answers with the half-turn twin of the CYGNSS-like bus (the wings and bus fit; the
-    boom and star tracker say otherwise). Without switching, the track stays there. The twin
-    monitor finds the truth explaining the scan at least as well, keeps that twin open and widens
-    the protection level by the port's offset between the two: the wrong pose is never published
-    valid with an error beyond its bound. Without the monitor it is (hazardously misleading)."""
+def _fly_from_twin(monkeypatch, monitor: bool) -> tuple[TriDAR, list[StateVector], np.ndarray]:
+    """The tumbling mission's pipeline, PAH answering with the half-turn twin that moves the
+    port most, flown 30 frames from 5 m (the twin monitor checking every 0.4 s when
+    ``monitor``): ``(pipeline, state vectors with a position, their port errors [m])``."""
     cfg = load_config("tumbling_target", pipeline__symmetry_check_period_s=None,
                       pipeline__integrity__ambiguity_check_period_s=0.4 if monitor else None)
     target = load_target(cfg.target.name)
@@ -445,6 +442,17 @@ def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monit
     assert len(tracked) >= 20
     err = np.array([np.linalg.norm(sv.T_sensor_target[:3, :3] @ r + sv.T_sensor_target[:3, 3] - port_true)
                     for sv in tracked])
+    return tri, tracked, err
+
+
+@pytest.mark.parametrize("monitor", [True, False])
+def test_a_track_pah_started_on_a_twin_is_not_published_valid(monkeypatch, monitor: bool) -> None:
+    """PAH answers with the half-turn twin of the CYGNSS-like bus (the wings and bus fit; the
+    boom and star tracker say otherwise). Without switching, the track stays there. The twin
+    monitor finds the truth explaining the scan at least as well, keeps that twin open and widens
+    the protection level by the port's offset between the two: the wrong pose is never published
+    valid with an error beyond its bound. Without the monitor it is (hazardously misleading)."""
+    tri, tracked, err = _fly_from_twin(monkeypatch, monitor)
     assert np.median(err) > 0.3  # the track sits on the twin
     misleading = [e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked)]
     if monitor:
@@ -463,31 +471,11 @@ def test_a_twin_whose_icp_does_not_settle_stays_open(monkeypatch) -> None:
     0.58 m port error under a 0.31 m protection level.)"""
     import perception.pipeline.twins as twins_module
 
-    cfg = load_config("tumbling_target", pipeline__symmetry_check_period_s=None,
-                      pipeline__integrity__ambiguity_check_period_s=0.4)
-    target = load_target(cfg.target.name)
-    tri = TriDAR(cfg, target)
-    tri.reset(np.random.default_rng(4))
-    fly = Fly(approach_pose(cfg, target, 5.0, lateral=(0.05, -0.03)))
-    r = target.T_target_port[:3, 3]
-    G = tri.pah.near_symmetries()
-    flip = max(G, key=lambda g: np.linalg.norm(g[:3, :3] @ r + g[:3, 3] - r))
-
-    def localize(self, points, rng, **kwargs):
-        return icp(points, tri.model, fly.T(0.0) @ flip, sigma=kwargs.get("sigma", 0.003),
-                   directions=kwargs.get("directions"))
-
     def unsettled_icp(*args, **kwargs):
         return dataclasses.replace(icp(*args, **kwargs), converged=False)
 
-    monkeypatch.setattr(pah_module.PAHDatabase, "localize", localize)
     monkeypatch.setattr(twins_module, "icp", unsettled_icp)
-    hist = _run(tri, fly, 30)
-    port_true = fly.T(0.0)[:3, :3] @ r + fly.T(0.0)[:3, 3]
-    tracked = [sv for _, sv in hist if sv.valid.position]
-    assert len(tracked) >= 20
-    err = np.array([np.linalg.norm(sv.T_sensor_target[:3, :3] @ r + sv.T_sensor_target[:3, 3] - port_true)
-                    for sv in tracked])
+    tri, tracked, err = _fly_from_twin(monkeypatch, True)
     assert np.median(err) > 0.3
     assert not any(e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked))
     assert tri.twins.twins_open and tri.twins.ambiguity_m > 0.3

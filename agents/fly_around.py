@@ -201,7 +201,6 @@ class FlyAroundController:
                 self.v = self.v + self.g.rate_gain * (rr - float(self.v @ u)) * u
             self.blind_s = 0.0
             self.ranged_s += self.dt
-            return False
         else:
             self.blind_s += self.dt
         return usable

@@ -96,6 +96,15 @@ def line_of_sight(bearing: npt.ArrayLike) -> FloatArray:
     return np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
 
 
+def returns_centroid(obs: npt.NDArray[np.floating], R_cs: FloatArray, t_cs: FloatArray
+                     ) -> tuple[FloatArray, FloatArray]:
+    """The returns' centroid [m] from the chaser's centre of mass (body frame) and the line of
+    sight (body frame) from an observation's ``bearing`` and ``range``, the sensor mounted at
+    ``t_cs`` (3,) with attitude ``R_cs`` (3, 3) in the body."""
+    u = R_cs @ line_of_sight(obs[_S["bearing"]])
+    return t_cs + float(obs[_S["range"]][0]) * u, u
+
+
 class BearingGuidance:
     """Closes on the target along the line of sight on bearing, range and range rate (module doc).
 
@@ -179,8 +188,7 @@ class BearingGuidance:
     # ------------------------------------------------------------------ estimate
     def _centroid(self, obs: npt.NDArray[np.floating]) -> tuple[FloatArray, FloatArray]:
         """Target centroid from the chaser's centre of mass (body frame) and the line of sight."""
-        u = self.R_cs @ line_of_sight(obs[_S["bearing"]])
-        return self.t_cs + float(obs[_S["range"]][0]) * u, u
+        return returns_centroid(obs, self.R_cs, self.t_cs)
 
     def update(self, obs: npt.NDArray[np.floating]) -> None:
         """Predict over the last step with the applied acceleration, then take this observation's

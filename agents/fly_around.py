@@ -60,7 +60,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from agents.bearing_guidance import line_of_sight
+from agents.bearing_guidance import returns_centroid
 from agents.lqr import saturate
 from perception.config import MissionConfig
 from tridar_env.dynamics import cw_acceleration, cw_stm, mean_motion
@@ -171,8 +171,7 @@ class FlyAroundController:
         valid = obs[_S["valid"]]
         if valid[_BEARING] < 0.5 or valid[_RANGE] < 0.5:
             return None
-        u = self.R_cs @ line_of_sight(obs[_S["bearing"]])
-        return float(np.linalg.norm(self.t_cs + float(obs[_S["range"]][0]) * u))
+        return float(np.linalg.norm(returns_centroid(obs, self.R_cs, self.t_cs)[0]))
 
     def update(self, obs: npt.NDArray[np.floating]) -> bool:
         """Take this observation (or dead-reckon, range-aided when it can); True on a usable

@@ -65,7 +65,8 @@ class GlideslopeGains:
     commit_range_m: float = 1.0  # [m] no hold point closer than this (a stop there is a collision)
     kp_att: float = 0.4  # [1/s^2] attitude loop (6-DOF)
     kd_att: float = 1.2  # [1/s]
-    safety: SafetyGains = field(default_factory=SafetyGains)  # lost or degraded track
+    # lost or degraded track; a degraded pose far out closes to the hold point (agents.safety)
+    safety: SafetyGains = field(default_factory=lambda: SafetyGains(v_degraded_close=0.1))
     bearing: BearingGains = field(default_factory=BearingGains)  # no healthy pose, far out
 
 

@@ -50,7 +50,12 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     the axis: dock to port along the docking axis for glideslope/LQR; centre of mass to centre of
     mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed
     loop ``kv`` tracks it, plus the rotating-frame terms. ``s_hold`` is the controller's hold
-    distance plus the protection level of a degraded pose. A degraded pose inside the commit range
+    distance plus the protection level of a degraded pose. A degraded pose beyond ``s_hold``
+    (still measured along the axis) closes to it at ``min(k_hold (s - s_hold), v_degraded_close)``
+    (default 0: it holds where it is): the features that settle a degraded pose may only resolve
+    closer in (a generated cylinder bus's roll, pinned by a thin boom that gave 0-3 returns a
+    frame at 33 m, held degraded there for the whole episode), and ``s_hold`` keeps the
+    protection level's width between the chaser and the port. A degraded pose inside the commit range
     aborts (it backs away too) unless the chaser is closer than the avoidance law can stop from
     (``closing / kv``) and the port is bounded inside the capture envelope's lateral tolerance
     (``lateral_max_m``): then it commits (latched), since braking there cannot stop the chaser and
@@ -101,6 +106,8 @@ class SafetyGains:
     # the pose was lost, unless the chaser retreated)
     k_fix_velocity: float = 0.1  # weight of a pose's velocity against the dead-reckoned one
     hold_s: float = 3.0  # [s] a loss shorter than this only stops the closing; then retreat
+    v_degraded_close: float = 0.0  # [m/s] a degraded pose beyond the hold point closes to it
+    # along the axis at most this fast (0: it holds where it is; module docstring)
 
 
 def rotvec_matrix(rotvec: FloatArray) -> FloatArray:
@@ -247,6 +254,7 @@ class CollisionAvoidance:
         self._pl_fix = 0.0  # protection level of the last healthy fix [m]
         self._since_fix_s = 0.0  # time since the last healthy fix [s]
         self._degraded_commit = False  # committed on a degraded pose (latched, module docstring)
+        self._degraded_now = False  # this step's pose is degraded (measured along the axis)
 
     # ------------------------------------------------------------------ state
     def port(self, w: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -279,6 +287,7 @@ class CollisionAvoidance:
         self._w_prev = w
         pose = x is not None and x_dot is not None and valid[_POS] > 0.5 and valid[_VEL] > 0.5
         degraded = valid[_DEGRADED] > 0.5 and x is not None and valid[_POS] > 0.5
+        self._degraded_now = degraded
         if pose and not degraded:
             assert x is not None and x_dot is not None
             if self.has_fix:  # average the estimate's velocity noise through the model
@@ -393,6 +402,8 @@ class CollisionAvoidance:
             s = float(np.linalg.norm(x))
             u = x / max(s, 1e-9)
         v_open = float(np.clip(g.k_hold * (hold - s), 0.0, g.v_retreat)) if self.retreating else 0.0
+        if self._degraded_now and s > hold:  # measured along the axis: close to the hold point
+            v_open = -min(g.k_hold * (s - hold), g.v_degraded_close)
         return g.kv * (x_dot - v_open * u) + frame
 
     def applied(self, a_body: FloatArray) -> None:

@@ -118,6 +118,29 @@ class IntegrityConfig(StrictModel):
     slide_probe_fraction: Annotated[Float, Field(gt=0, le=0.1)] = Field(
         0.001, description="slide probe's push: max(3 sigma, this * range) [m]"
     )
+    turn_check_period_s: Period | None = Field(
+        None, description="turn monitor (perception.pipeline.slides): every this many seconds of "
+        "tracking (and on each new track's first frames), ICP from the pose turned both ways by "
+        "turn_probe_rad and to the best far turns (turn_grid_deg, turn_candidates) about its "
+        "least-constrained rotation axis; "
+        "a turned pose ICP does not bring back and that explains the scan about as well "
+        "(ambiguity_margin) makes the turn uncertain by its offset, added to the registrations, "
+        "held (slide_hold_s) and floored in the published attitude (slide_position_floor); a "
+        "far turn that scores clearly better moves the track there. A generated cylinder bus whose roll only a thin boom pins (0-3 of "
+        "~250 points) was published valid 180 deg off in roll, its off-axis port 0.83 m away "
+        "under a 9 cm protection level (None: off)"
+    )
+    turn_probe_rad: Annotated[Float, Field(gt=0, le=0.5)] = Field(
+        0.05, description="turn monitor's small push: max(3 sigma, this) [rad] (a flat valley)"
+    )
+    turn_grid_deg: Annotated[Float, Field(ge=1, le=90)] = Field(
+        10.0, description="turn monitor's far turns: every this many degrees round the circle, "
+        "scored as they stand (other basins: a rim's facets, a roll the model's near-symmetries "
+        "miss)"
+    )
+    turn_candidates: Annotated[Int, Field(ge=1, le=36)] = Field(
+        2, description="turn monitor: the best-scoring far turns polished by ICP and judged"
+    )
 
 
 class ScanPlanConfig(StrictModel):

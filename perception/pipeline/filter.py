@@ -398,6 +398,27 @@ class PoseFilter:
         """
         self._floor(slice(0, 3), axis, sigma, "floor_position")
 
+    def floor_turn(self, axis: npt.ArrayLike, pivot: npt.ArrayLike, sigma: float) -> None:
+        """Raise the attitude variance about ``axis`` (sensor coordinates), a turn about the
+        line through ``pivot`` (sensor frame [m]), to at least ``sigma**2`` [rad^2], as
+        :meth:`floor_position` does the position's. The reference point moves with the turn, so
+        the variance goes in along ``[e x (p - pivot), e]``, not along the attitude alone: a roll
+        about a bus's axis leaves a point on that axis where it is.
+        """
+        e = np.asarray(axis, dtype=np.float64).reshape(3)
+        n = float(np.linalg.norm(e))
+        q = np.asarray(pivot, dtype=np.float64).reshape(3)
+        if not (np.isfinite(n) and n > 0 and np.isfinite(sigma) and np.all(np.isfinite(q))):
+            raise ValueError(f"floor_turn(axis={e.tolist()}, pivot={q.tolist()}, sigma={sigma}); "
+                             "expected a finite non-zero axis, a finite pivot and a finite sigma")
+        e = e / n
+        gap = float(sigma) ** 2 - float(e @ self.P[6:9, 6:9] @ e)
+        if gap > 0.0:
+            u = np.zeros(12)
+            u[0:3] = np.cross(e, self.p - q)
+            u[6:9] = e
+            self.P = self.P + gap * np.outer(u, u)
+
     def _floor(self, block: slice, axis: npt.ArrayLike, sigma: float, name: str) -> None:
         e = np.asarray(axis, dtype=np.float64).reshape(3)
         n = float(np.linalg.norm(e))

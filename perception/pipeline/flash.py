@@ -106,6 +106,8 @@ class FlashTrackingMode(TrackingMode):
         if verdict.good and tri.n_updates > 0:
             sub = tri.subset(cloud, tri.twin_points)
             tri.twins.monitor(sub.points, sub, res, t_ref, tri.pc.icp)
+            if tri.slides.switch(cloud.points, cloud, t_ref):
+                tracker.reset()  # the tracker starts again on the moved track's pose
         if self.conclude(cloud, cloud.points, t, t_ref, res, verdict):
             tracker.reset()
 

@@ -274,12 +274,18 @@ class ScanPlanner:
         return list(self._fixed) + ([feat] if feat is not None else [])
 
     def _feature_region(
-        self, T_pred: FloatArray, information: FloatArray, frame_index: int
+        self, T_pred: FloatArray, information: FloatArray | None, frame_index: int,
+        direction: FloatArray | None = None,
     ) -> RegionOfInterest | None:
         """The port plus the visible model points that best pin the weakest axis of
-        ``information`` (the range strategy's region's predicted information)."""
-        lam, V = np.linalg.eigh(information + 1e-12 * np.eye(6))
-        weak = V[:, 0]
+        ``information`` (the range strategy's region's predicted information), or ``direction``
+        (a twist about the target origin, sensor axes) when given."""
+        if direction is not None:
+            weak = np.asarray(direction, dtype=np.float64)
+        else:
+            assert information is not None
+            _, V = np.linalg.eigh(information + 1e-12 * np.eye(6))
+            weak = V[:, 0]
         whole = self.target.regions["whole"]
         R, t = T_pred[:3, :3], T_pred[:3, 3]
         try:
@@ -319,6 +325,7 @@ class ScanPlanner:
         frame_index: int = 0,
         t: float = 0.0,
         weak: bool = False,
+        pin: npt.ArrayLike | None = None,
     ) -> tuple[RegionOfInterest, Prediction | None]:
         """The region to scan now.
 
@@ -334,6 +341,11 @@ class ScanPlanner:
             frame_index: frame index (pattern phase).
             t: time [s].
             weak: the last registration had unobserved axes.
+            pin: a direction the scans must pin (a twist about the target origin, sensor
+                axes: a turn the turn monitor holds, :mod:`perception.pipeline.slides`). The
+                regions' own bounds do not see it (a cylinder bus's rim facets claim its roll
+                locally, whatever the turn), so the feature region built for it is scanned
+                outright, at most every ``period_s``.
 
         Returns:
             The region and its prediction (None when the default serves unpredicted).
@@ -343,9 +355,16 @@ class ScanPlanner:
         if default_name != self._default:
             self.region, self.prediction, self._default = None, None, default_name
             self._t_plan = -math.inf
-        if not self.due(t, weak):
+        if not self.due(t, weak or pin is not None):
             return (self.region, self.prediction) if self.region is not None else (default, None)
         T = np.asarray(T_pred, dtype=np.float64)
+        if pin is not None:
+            feat = self._feature_region(T, None, frame_index, np.asarray(pin, dtype=np.float64))
+            if feat is not None:
+                self.region, self.prediction = feat, None
+                self._t_plan = float(t)
+                self.plans += 1
+                return feat, None
         # The fixed candidates include the default region: its prediction also seeds the
         # feature region (predicted once, not again for it).
         preds = [self._predict(T, r, frame_index) for r in self._fixed]

@@ -55,19 +55,68 @@ drifted prediction then settled in another bay (4 runs in 100 valid-but-wrong, 4
 1 with no hold). With the floor on, the velocity stays uncertain while the slide is held, and
 ``fly_around`` holds for the floor's time (10 s): a run whose probes swung between 1.5 cm and
 0.6 m went 1 m off under its protection level with no hold, and 8 cm off with it.
+
+**A turn can be uncertain too** (``integrity.turn_check_period_s``): a cylinder bus's roll about
+its axis is pinned only by what breaks the symmetry (a thin boom, 0-3 of ~250 points a frame),
+and the registration's information, from a handful of points or the rim's 32 facets, still
+claimed 0.2-8 deg; ICP from the prediction stopped where it started or in the next facet's basin,
+the filter took the roll the prediction carried and a rate of 3 deg/s the target never had, and
+the off-axis port was published valid 0.83 m away under a 9 cm protection level. The turn probe
+is the slide probe for the weakest rotation ``e`` of the registration's covariance, near and
+far: the pose is turned about the line through the pivot ``q`` the covariance couples with
+``e`` (``q = o - g x e``, ``g = C_tr C_rr^-1 e``: a roll about a bus's axis moves no point of
+that axis). Near: by ``a = max(3 sigma, turn_probe_rad)`` both ways, ICP (capped at 10 iterations,
+as the twin monitor's) from each. Far: every ``turn_grid_deg`` round the circle (beyond ``2 a``)
+is scored as it stands, PAH's way (:meth:`~perception.estimation.pah.PAHDatabase.verify_poses`,
+one batch), and the ``turn_candidates`` best local maxima are polished by the capped ICP (a
+coarse sweep of 30/90/180 deg polished by ICP never reached the true roll: with a boom's few
+returns ICP barely turns, and the rim's facets hold it in the basin it starts in). A stop more
+than ``3 sigma`` from the answer about ``e`` that explains the scan about as well (its score
+within ``ambiguity_margin`` of the tracked pose's, as the twin monitor judges twins) is another
+answer the scan allows: the turn is uncertain by its offset. The near pushes and the best far
+turn are judged on their mean lead over the last ``symmetry_switch_checks`` probes: the boom's
+returns vary from frame to frame, and single frames with none of them made turns that the others
+had ruled out by 0.3-2.7 look alike, holding the bus degraded at 12 m with its roll right to
+1 deg. Where the near pushes stay off, ICP runs once more from ``2 a``, and ``rho`` extrapolates
+as above; a turn that slides freely is uniform on the circle (``rho > 0.9``: sigma
+``pi / sqrt(3)``, also the cap). A stop that explains the scan clearly worse is not evidence (a
+30 deg turn of a well-pinned target may not come back, and need not). The turn is held, added to
+the registrations along ``[e x (o - q), e]`` and floored in the published attitude
+(``slide_position_floor``) as a slide is. Its rate is not floored: the deweighted registrations
+teach the filter no rate about it, and ``sigma / tau`` of a free turn (10 deg/s) spun the
+estimate 90 deg in 2 s. A rotation the registration already reports degenerate
+(sigma over 0.5 rad) is not probed: the frame says so itself, and the filter's continuity
+carries the turn through it.
+
+**A held turn lapses only on evidence that it is pinned**: ``slide_hold_s`` after it was last
+found, and once ``symmetry_switch_checks`` probes in a row that ran found no turn, or one far
+tighter (under a third of its sigma; a tighter finding does not renew it). Frames that leave the
+turn degenerate are no evidence either way: with a plain hold, a track PAH started 90 deg off in
+roll at 11 m let its turn lapse over such frames and was published valid 0.69 m off under a
+0.15 m protection level.
+
+**A turn that explains the scans better moves the track** (the twin monitor's switch, with its
+``symmetry_margin`` and ``symmetry_switch_checks``): once the features that pin the turn come into
+the scans (the bus's boom at 10-15 m), the probe's far turn scores clearly above the tracked pose
+at probe after probe, and the track restarts there (keeping its rates) rather than wait for a
+prediction that never carries ICP into the right basin. While a turn is held the scan planner
+(:mod:`perception.pipeline.observability`) steers the scan onto the features that pin it (its
+``pin``): its regions' own bounds take the rim's facets for roll information and kept the boom
+out of the scans at 10 m.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
+from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:
@@ -80,6 +129,23 @@ __all__ = ["SlideMonitor"]
 
 #: Slides whose axes are within 20 deg of each other are one slide.
 _MERGE_COS = math.cos(math.radians(20.0))
+#: A turn the registration already reports this uncertain [rad] is not probed.
+_TURN_PROBED_BELOW_RAD = 0.5
+#: Two turns within 20 deg of each other are the same turn (trace of their difference).
+_SAME_TURN_TRACE = 1.0 + 2.0 * math.cos(math.radians(20.0))
+#: 1-sigma of a turn uniform on the circle [rad].
+_FREE_TURN_RAD = math.pi / math.sqrt(3.0)
+
+
+class Held(NamedTuple):
+    """A held slide: ``axis`` (3,) unit [target frame], ``sigma`` (1-sigma [m], or [rad] for a
+    turn), ``t`` the time it was found [s], and for a turn the ``pivot`` (3,) its axis passes
+    through [target frame, m] (None: a slide of the position)."""
+
+    axis: FloatArray
+    sigma: float
+    t: float
+    pivot: FloatArray | None = None
 
 
 class SlideMonitor:
@@ -88,58 +154,98 @@ class SlideMonitor:
     Attributes:
         axis_target: (3,) unit direction [target frame] of the last probe's slide, or None.
         sigma_m: 1-sigma [m] added along it to the registrations (0: none).
-        probes: probes run; ``slides``: those that found a slide.
+        turn_axis_target, turn_pivot_target, turn_sigma_rad: the last turn probe's slide (its
+            axis [target frame], a point on it [target frame, m], 1-sigma [rad]), or None / 0.
+        probes: probes run; ``slides``: those that found a slide; ``turn_probes``, ``turns``: the
+            same for turns; ``turn_switches``: tracks moved to a better turn.
     """
 
     def __init__(self, tri: TriDAR) -> None:
         self.tri = tri
         self.probes = 0
         self.slides = 0
+        self.turns = 0
+        self.turn_probes = 0
+        self.turn_switches = 0
         self.reset()
 
     def reset(self) -> None:
         self.checked_t = -np.inf
+        self.turn_checked_t = -np.inf
+        self.turn_votes = 0
+        self.turn_candidate: FloatArray | None = None
+        self.pending_switch: RegistrationResult | None = None
+        self.turn_leads = np.empty((0, 3))  # the last probes' leads: near pushes, best far turn
+        self.turn_record: dict[str, object] = {}  # the last turn probe's figures (diagnostics)
+        self.turn_quiet = 0  # probes in a row that ran and found no turn
         self.axis_target: FloatArray | None = None
         self.sigma_m = 0.0
-        #: Held slides: ``[axis_target (3,), sigma_m, time found]`` (module docstring).
-        self.held: list[tuple[FloatArray, float, float]] = []
+        self.turn_axis_target: FloatArray | None = None
+        self.turn_pivot_target: FloatArray | None = None
+        self.turn_sigma_rad = 0.0
+        #: Held slides and turns (module docstring).
+        self.held: list[Held] = []
 
     def start(self) -> None:
         """A new track: probe its first registrations; the held slides stay (they belong to
         the aspect, which a restart does not change)."""
-        self.checked_t = -np.inf
+        self.checked_t = self.turn_checked_t = -np.inf
+        self.turn_leads = np.empty((0, 3))
 
     @property
     def enabled(self) -> bool:
-        return self.tri.pc.integrity.slide_check_period_s is not None
+        ig = self.tri.pc.integrity
+        return ig.slide_check_period_s is not None or ig.turn_check_period_s is not None
 
     def apply(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult, t_ref: float,
               icp_cfg: ICPConfig, n_updates: int) -> RegistrationResult:
         """``res`` with the slide's variance added (probing first when a probe is due at
         ``t_ref`` [s], the track having ``n_updates`` accepted registrations)."""
         ig = self.tri.pc.integrity
-        if ig.slide_check_period_s is None or not res.converged:
+        self.pending_switch = None  # a switch is this frame's, or none
+        if not self.enabled or not res.converged:
             return res
-        if n_updates < ig.confirm_frames or t_ref - self.checked_t >= ig.slide_check_period_s - 1e-9:
+
+        def due(period: float | None, checked: float) -> bool:
+            return period is not None and (n_updates < ig.confirm_frames or t_ref - checked >= period - 1e-9)
+
+        if due(ig.slide_check_period_s, self.checked_t):
             self.checked_t = t_ref
             self.probe(pts, cloud, res, icp_cfg)
-            if ig.slide_hold_s <= 0.0:
-                self.held = []  # no hold: a slide lasts until the next probe
+            if ig.slide_hold_s <= 0.0:  # no hold: a slide lasts until the next probe
+                self.held = [h for h in self.held if h.pivot is not None]
             if self.axis_target is not None:
                 self.hold(self.axis_target, self.sigma_m, t_ref)
+        if due(ig.turn_check_period_s, self.turn_checked_t):
+            self.turn_checked_t = t_ref
+            self.probe_turn(pts, cloud, res, icp_cfg)
+            if ig.slide_hold_s <= 0.0:
+                self.held = [h for h in self.held if h.pivot is None]
+            if self.turn_axis_target is not None:
+                held = self._held_turn(self.turn_axis_target)
+                if held is not None and self.turn_sigma_rad < held.sigma / 3.0:
+                    self.turn_quiet += 1  # pinned far tighter than held: evidence it is pinned
+                else:
+                    self.turn_quiet = 0
+                    self.hold(self.turn_axis_target, self.turn_sigma_rad, t_ref, self.turn_pivot_target)
         if ig.slide_hold_s > 0.0:
-            self.held = [h for h in self.held if t_ref - h[2] <= ig.slide_hold_s + 1e-9]
+            # A turn lapses only once symmetry_switch_checks probes in a row that ran found it
+            # pinned (no turn, or one far tighter than held): frames that leave it unobserved
+            # are no evidence either way.
+            quiet = self.turn_quiet >= self.tri.pc.symmetry_switch_checks
+            self.held = [h for h in self.held if t_ref - h.t <= ig.slide_hold_s + 1e-9
+                         or (h.pivot is not None and not quiet)]
         return self.inflate(res)
 
-    def hold(self, axis_target: FloatArray, sigma_m: float, t: float) -> None:
-        """Hold a slide found at ``t`` [s]; one along a held axis (within 20 deg) merges into it
-        at the larger sigma."""
-        for i, (a, s, _) in enumerate(self.held):
-            if abs(float(a @ axis_target)) >= _MERGE_COS:
-                keep = (a, s, t) if s >= sigma_m else (axis_target, sigma_m, t)
-                self.held[i] = keep
+    def hold(self, axis_target: FloatArray, sigma: float, t: float, pivot: FloatArray | None = None) -> None:
+        """Hold a slide (a turn, given its ``pivot``) found at ``t`` [s]; one of the same kind
+        along a held axis (within 20 deg) merges into it at the larger sigma."""
+        new = Held(axis_target, sigma, t, pivot)
+        for i, h in enumerate(self.held):
+            if (h.pivot is None) == (pivot is None) and abs(float(h.axis @ axis_target)) >= _MERGE_COS:
+                self.held[i] = h._replace(t=t) if h.sigma >= sigma else new
                 return
-        self.held.append((axis_target, sigma_m, t))
+        self.held.append(new)
 
     def probe(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult, icp_cfg: ICPConfig) -> None:
         """Push ``res`` both ways along its weakest position axis; set the slide (module doc)."""
@@ -171,6 +277,126 @@ class SlideMonitor:
         self.sigma_m = min(o / max(1.0 - rho, 0.1), 10.0 * o)
         self.axis_target = T[:3, :3].T @ e
 
+    def probe_turn(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
+                   icp_cfg: ICPConfig) -> None:
+        """Turn ``res`` about its weakest rotation, near and far; set the turn (module doc)."""
+        ig = self.tri.pc.integrity
+        self.turn_axis_target = self.turn_pivot_target = None
+        self.turn_sigma_rad = 0.0
+        self.turn_probes += 1
+        T = res.T_sensor_target
+        C = 0.5 * (res.covariance + res.covariance.T)
+        lam, V = np.linalg.eigh(C[3:, 3:])
+        e = V[:, -1]
+        sigma = math.sqrt(max(float(lam[-1]), 0.0))
+        # The translation the covariance couples with a unit turn about e, and the line it turns
+        # about: e x (o - q) = g, taken perpendicular to e.
+        g = C[:3, 3:] @ np.linalg.lstsq(C[3:, 3:], e, rcond=1e-12)[0]
+        o = T[:3, 3]
+        q = o - np.cross(g, e)
+        R = T[:3, :3]
+        if not sigma < _TURN_PROBED_BELOW_RAD:
+            # The frame says itself that it does not pin the turn: nothing to probe, and no
+            # evidence either way (a held turn neither renews nor counts towards lapsing).
+            self.turn_record = {"free": True}
+            return
+        a = max(3.0 * sigma, ig.turn_probe_rad)
+        cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
+
+        def turned(angle: float) -> FloatArray:
+            Rq = fast_rotvec_to_matrix(angle * e)
+            T0 = T.copy()
+            T0[:3, :3] = Rq @ T[:3, :3]
+            T0[:3, 3] = q + Rq @ (o - q)
+            return T0
+
+        verify = self.tri.pah.verify_poses
+        # The far turns: every turn_grid_deg round the circle scored as it stands, and the
+        # turn_candidates best local maxima (beyond 2 a) polished by ICP.
+        step = math.radians(ig.turn_grid_deg)
+        grid = np.arange(1, round(2.0 * math.pi / step)) * step
+        grid = np.where(grid > math.pi, grid - 2.0 * math.pi, grid)
+        grid = np.sort(grid[np.abs(grid) > 2.0 * a])
+        far: list[float] = []
+        if grid.size:
+            _, gs = verify(pts, cloud.sigma, np.stack([turned(float(x)) for x in grid]), cloud.directions)
+            peak = (gs >= np.roll(gs, 1)) & (gs >= np.roll(gs, -1))
+            order = np.argsort(-np.where(peak, gs, -np.inf), kind="stable")[: ig.turn_candidates]
+            far = [float(grid[k]) for k in order if peak[k]]
+
+        def run(angles: list[float]) -> tuple[FloatArray, FloatArray, list[RegistrationResult]]:
+            """Offsets about ``e`` [rad] where ICP stops from the turned poses, their PAH score
+            leads over ``res``, and the registrations."""
+            alts = [icp(pts, self.tri.model, turned(x), sigma=cloud.sigma, directions=cloud.directions,
+                        config=cfg, coarse=False) for x in angles]
+            ends = [alt.T_sensor_target for alt in alts]
+            off = np.array([abs(float(fast_matrix_to_rotvec(Te[:3, :3] @ T[:3, :3].T) @ e)) for Te in ends])
+            _, score = verify(pts, cloud.sigma, np.stack([T, *ends]), cloud.directions)
+            return off, score[1:] - score[0], alts
+
+        off, lead, alts = run([a, -a, *far])
+        k_best = int(np.argmax(lead))
+        self._vote_turn(T, float(lead[k_best]), alts[k_best])
+        # The near pushes and the best far turn are judged on their mean lead over the last
+        # symmetry_switch_checks probes: the few returns that pin the turn (a boom's) vary from
+        # frame to frame, and single frames with none of them made turns the others had ruled
+        # out by 0.3-2.7 look alike.
+        # A far turn that ICP brought back within 2 a is the tracked pose's own basin (the near
+        # pushes probe it); one still on its way back, capped, was taken for another answer on
+        # the ISS-like port at 16 m (held 3-6 deg, degraded, and the approach stalled).
+        far_ok = off[2:] > max(3.0 * sigma, 2.0 * a)
+        k_far = 2 + int(np.argmax(np.where(far_ok, lead[2:], -np.inf))) if np.any(far_ok) else -1
+        # (leads floored at -1: one probe with no far turn must not outweigh the others)
+        judged = np.maximum([lead[0], lead[1], lead[k_far] if k_far >= 0 else -1.0], -1.0)
+        n = self.tri.pc.symmetry_switch_checks
+        self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-n:]
+        mean_lead = self.turn_leads.mean(axis=0)
+        self.turn_record = {"free": False, "off_deg": np.degrees(off), "lead": lead,
+                            "converged": np.array([alt.converged for alt in alts]), "mean_lead": mean_lead}
+        alike = mean_lead >= -ig.ambiguity_margin
+        found = np.array([off[0] > 3.0 * sigma, off[1] > 3.0 * sigma, k_far >= 0])
+        if not np.any(found & alike):
+            self.turn_quiet += 1
+            return
+        self.turns += 1
+        s_turn = float(np.max(np.array([off[0], off[1], off[k_far] if k_far >= 0 else 0.0])[found & alike]))
+        near = found[:2] & alike[:2]
+        if np.any(near):  # the near pushes did not come back: a flat valley or a basin next door
+            k = int(np.argmax(np.where(near, off[:2], -1.0)))
+            off2, lead2, _ = run([2.0 * a if k == 0 else -2.0 * a])
+            rho = min(max((float(off2[0]) - float(off[k])) / a, 0.0), 1.0) if lead2[0] >= -ig.ambiguity_margin else 0.0
+            s_turn = max(s_turn, _FREE_TURN_RAD if rho > 0.9 else float(off[k]) / (1.0 - rho))
+        self.turn_axis_target, self.turn_pivot_target = R.T @ e, R.T @ (q - o)
+        self.turn_sigma_rad = min(s_turn, _FREE_TURN_RAD)
+
+    def _vote_turn(self, T: FloatArray, lead: float, alt: RegistrationResult) -> None:
+        """A vote for the turned pose ``alt`` when it explains the scan better than the tracked
+        pose ``T`` by ``symmetry_margin`` (its PAH score's ``lead``); ``symmetry_switch_checks``
+        votes in a row for the same turn (within 20 deg, in the target frame) make it the
+        pending switch (:meth:`switch`)."""
+        pc = self.tri.pc
+        if not (lead > pc.symmetry_margin and alt.converged):
+            self.turn_votes, self.turn_candidate = 0, None
+            return
+        D = T[:3, :3].T @ alt.T_sensor_target[:3, :3]  # the turn, in the target frame
+        same = self.turn_candidate is not None and float(np.trace(self.turn_candidate.T @ D)) >= _SAME_TURN_TRACE
+        self.turn_votes = self.turn_votes + 1 if same else 1
+        self.turn_candidate = D
+        if self.turn_votes >= pc.symmetry_switch_checks:
+            self.pending_switch = alt
+            self.turn_votes, self.turn_candidate = 0, None
+
+    def switch(self, pts: FloatArray, cloud: PointCloud, t_ref: float) -> bool:
+        """Move the track to the turn the probes preferred (after the frame's filter update, as
+        the twin monitor's switch): True when it did."""
+        alt, self.pending_switch = self.pending_switch, None
+        if alt is None:
+            return False
+        self.tri.twins.move_track(alt, pts, cloud, t_ref)
+        self.turn_switches += 1
+        self.turn_leads = np.empty((0, 3))  # judged again from the new pose
+        return True
+
     def loosen(self, f: PoseFilter) -> None:
         """Before ``f`` predicts to its next registration: keep its velocity along each slide
         uncertain by ``sigma / slide_velocity_time_s`` (module docstring), so the prediction
@@ -178,25 +404,57 @@ class SlideMonitor:
         tau = self.tri.pc.integrity.slide_velocity_time_s
         if tau is None or not self.held or not f.initialized:
             return
-        for a, s, _ in self.held:
-            f.floor_velocity(f.R @ a, s / tau)
+        for h in self.held:
+            if h.pivot is None:  # a turn's rate is left alone (module docstring)
+                f.floor_velocity(f.R @ h.axis, h.sigma / tau)
 
     def pin(self, f: PoseFilter) -> PoseFilter:
         """``f`` (the copy of the filter a frame publishes) with its position along each held
         slide uncertain by at least the slide's sigma (``integrity.slide_position_floor``;
         module docstring); the live filter's gain is left alone."""
         if self.tri.pc.integrity.slide_position_floor and self.held and f.initialized:
-            for a, s, _ in self.held:
-                f.floor_position(f.R @ a, s)
+            for h in self.held:
+                if h.pivot is None:
+                    f.floor_position(f.R @ h.axis, h.sigma)
+                else:
+                    f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
         return f
 
+    def _held_turn(self, axis_target: FloatArray) -> Held | None:
+        """The held turn about ``axis_target`` (within 20 deg), if any."""
+        return next((h for h in self.held if h.pivot is not None
+                     and abs(float(h.axis @ axis_target)) >= _MERGE_COS), None)
+
+    def turn_direction(self, T: FloatArray) -> FloatArray | None:
+        """The widest held turn at pose ``T`` as a twist about the target origin (sensor axes,
+        ``[e x (o - q), e]``), for the scan planner to pin; None with no turn held."""
+        turns = [h for h in self.held if h.pivot is not None]
+        if not turns:
+            return None
+        h = max(turns, key=lambda h: h.sigma)
+        assert h.pivot is not None
+        R = T[:3, :3]
+        e = R @ h.axis
+        return np.concatenate([np.cross(e, -(R @ h.pivot)), e])
+
+    @staticmethod
+    def _pivot(f: PoseFilter, pivot_target: FloatArray) -> FloatArray:
+        """A target-frame point in the sensor frame at the filter's pose."""
+        T = f.T_sensor_target
+        return T[:3, :3] @ pivot_target + T[:3, 3]
+
     def inflate(self, res: RegistrationResult) -> RegistrationResult:
-        """``res`` with each held slide's ``sigma**2`` added along its axis (none: ``res`` itself)."""
+        """``res`` with each held slide's ``sigma**2`` added along its axis, each held turn's along
+        its turn (none: ``res`` itself)."""
         if not self.held:
             return res
         R = res.T_sensor_target[:3, :3]
         cov = res.covariance.copy()
-        for a, s, _ in self.held:
-            e = R @ a
-            cov[:3, :3] += s * s * np.outer(e, e)
+        for h in self.held:
+            e = R @ h.axis
+            if h.pivot is None:
+                cov[:3, :3] += h.sigma**2 * np.outer(e, e)
+            else:  # about the target origin o: [e x (o - q), e], with o - q = -R pivot
+                u = np.concatenate([np.cross(e, -(R @ h.pivot)), e])
+                cov += h.sigma**2 * np.outer(u, u)
         return dataclasses.replace(res, covariance=cov)

@@ -119,7 +119,8 @@ class TrackingMode:
         roi = tri.target.regions.get(region) or tri.target.regions["whole"]
         if tri.planner is not None:
             weak = tri.last_result is not None and bool(tri.last_result.degenerate_axes)
-            roi, _ = tri.planner.choose(T_pred, region, tri.frame_index, t, weak)
+            roi, _ = tri.planner.choose(T_pred, region, tri.frame_index, t, weak,
+                                        pin=tri.slides.turn_direction(T_pred))
             region = roi.name
         try:
             pattern = tri.sensor.make_scan_pattern(tri.frame_index, T_pred, roi)
@@ -162,6 +163,7 @@ class TrackingMode:
             verdict = self._update(t_ref, res, expected, verdict)
         if verdict.good and tri.n_updates > 0:
             tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
+            tri.slides.switch(pts, cloud, t_ref)
         self.conclude(cloud, pts, t, t_ref, res, verdict)
 
     def take(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud | None:

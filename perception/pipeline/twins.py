@@ -145,15 +145,22 @@ class TwinMonitor:
         self.sym_candidate = best_i
         if self.sym_votes < pc.symmetry_switch_checks:
             return
+        self.move_track(best_res, pts, cloud, t_ref)
+        self.sym_votes, self.sym_candidate = 0, -1
+
+    def move_track(self, best_res: RegistrationResult, pts: FloatArray, cloud: PointCloud,
+                   t_ref: float) -> None:
+        """Move the track to ``best_res`` (a turn that clearly explains the scans better): the
+        filter restarts on it at ``t_ref`` [s], keeping its velocity and rates."""
+        tri = self.tri
         best_res = tri.tracking.outline_refine(best_res, pts, cloud)
         f = tri.filter
         v_origin = f.target_state()[1]
         f.initialize(t_ref, best_res.T_sensor_target,
-                     measurement_cov(best_res, tri.target.T_target_port[:3, 3], pc),
+                     measurement_cov(best_res, tri.target.T_target_port[:3, 3], tri.pc),
                      velocity=v_origin, omega=f.w)
         tri.last_result = best_res
         tri.stats.symmetry_switches += 1
-        self.sym_votes, self.sym_candidate = 0, -1
         tri.n_updates = max(tri.n_updates, 3)
         # The old pose is now a twin (clearly worse); the others are judged again from here.
         self.twins_open, self.amb_checked_t = None, -np.inf

@@ -11,7 +11,7 @@ import pytest
 
 import tridar_env  # noqa: F401  (registers the ids)
 from agents.episode import run_episode
-from agents.glideslope import GlideslopeController
+from agents.glideslope import GlideslopeController, GlideslopeGains
 from agents.lqr import LQRController, dock_frame_in_lvlh, docking_frame_model
 from agents.sync import SyncController
 from perception.config import load_config
@@ -603,6 +603,40 @@ def test_a_degraded_pose_is_not_flown_in_on(make: type) -> None:
     for _ in range(round(ctrl.safety.g.resume_s / dt)):
         ctrl(healthy)
     assert ctrl.safety.mode == "nominal"
+
+
+def test_a_degraded_pose_far_out_closes_to_the_hold_point_and_no_further() -> None:
+    """Glideslope (``safety.v_degraded_close`` 0.1 m/s): a degraded pose 20 m out with a 3 m
+    protection level closes along the axis at 0.1 m/s towards the hold point (5 m + 3 m) and
+    stops there; inside it, it holds; with ``v_degraded_close`` 0 it holds where it is."""
+    from agents.safety import SafetyGains
+
+    cfg = load_config("final_approach", env__perception="truth")
+
+    def settle(ctrl, z: float) -> float:  # type: ignore[no-untyped-def]
+        obs = _approach_obs(z, 0.0)
+        for _ in range(3):
+            ctrl(obs)
+        obs[S["valid"]][7] = 1.0
+        obs[S["protection_level"]] = 3.0
+        ctrl(obs)
+        assert ctrl.safety.mode == "avoid"
+        # a = kv (x_dot - v_open u): the closing speed the loop tracks is -v_open
+        a = ctrl.safety.accel(obs)
+        x_dot = ctrl.safety.dr.state(np.zeros(3))[1]
+        return float(a[2]) / ctrl.safety.g.kv - float(x_dot[2])
+
+    ctrl = GlideslopeController(cfg)
+    assert ctrl.safety.g.v_degraded_close == pytest.approx(0.1)
+    hold = ctrl.safety.g.hold_range_m + 3.0
+    assert settle(ctrl, 20.0) == pytest.approx(0.1)  # closing at the cap, far out
+    ctrl.reset()
+    near = hold + 0.5
+    assert settle(ctrl, near) == pytest.approx(ctrl.safety.g.k_hold * 0.5)  # slowing into it
+    ctrl.reset()
+    assert settle(ctrl, hold - 1.0) == pytest.approx(0.0, abs=1e-12)  # never inside it
+    held = GlideslopeController(cfg, dataclasses.replace(GlideslopeGains(), safety=SafetyGains()))
+    assert settle(held, 20.0) == pytest.approx(0.0, abs=1e-12)
 
 
 @pytest.mark.parametrize("make", [GlideslopeController, LQRController])

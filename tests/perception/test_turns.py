@@ -1,0 +1,188 @@
+"""The turn monitor (perception.pipeline.slides): a roll the scans cannot pin is never published
+valid, and a track on the wrong roll moves to the right one once the scans pin it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import perception.estimation.pah as pah_module
+from perception.config import load_config
+from perception.estimation.registration import RegistrationResult, icp
+from perception.geometry import make_T, rotation_z, skew
+from perception.pipeline import TriDAR, approach_pose
+from perception.pipeline.filter import PoseFilter
+from perception.shapes import generate_target
+from tests.perception.test_pipeline import Fly, _run
+
+# A generated cylinder bus (shape seed 41): port 0.40 m off the bus's axis on its +z end face,
+# a thin boom along x the only feature that breaks its roll symmetry (about 0-3 returns a frame
+# at 30 m, a few per cent of them at 12 m). The model's near-symmetry search finds no turn, so
+# the twin monitor has nothing to check.
+SHAPE_SEED = 41
+
+
+def _config(monitor: bool):  # type: ignore[no-untyped-def]
+    """``final_approach`` (which holds a turn 10 s and floors it in the published attitude) with
+    its turn monitor on (or off), and the corridor's attitude check
+    opened so the track starts on the roll PAH is made to answer (the stock 20 deg would refuse
+    it; a target that does not hold its attitude in LVLH has no such prior)."""
+    cfg = load_config("final_approach", pipeline__corridor__attitude_tolerance_deg=120.0,
+                      pipeline__integrity__turn_check_period_s=1.0 if monitor else None)
+    assert cfg.pipeline.integrity.slide_hold_s > 0 and cfg.pipeline.integrity.slide_position_floor
+    return cfg
+
+
+def _fly_rolled(monkeypatch, cfg, range_m: float, roll_deg: float, frames: int):  # type: ignore[no-untyped-def]
+    """The pipeline on the generated bus, PAH answering with the truth rolled by ``roll_deg``
+    about the bus's axis, flown ``frames`` frames ``range_m`` from the port:
+    ``(pipeline, state vectors with a position, their port errors [m])``."""
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    assert len(tri.pah.near_symmetries()) == 0
+    tri.reset(np.random.default_rng(7))
+    fly = Fly(approach_pose(cfg, target, range_m, lateral=(0.03, -0.02)))
+    roll = make_T(rotation_z(np.radians(roll_deg)))
+
+    def localize(self, points, rng, **kwargs):  # type: ignore[no-untyped-def]
+        return icp(points, tri.model, fly.T(0.0) @ roll, sigma=kwargs.get("sigma", 0.003),
+                   directions=kwargs.get("directions"))
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "localize", localize)
+    hist = _run(tri, fly, frames)
+    r = target.T_target_port[:3, 3]
+    port_true = fly.T(0.0)[:3, :3] @ r + fly.T(0.0)[:3, 3]
+    tracked = [sv for _, sv in hist if sv.valid.position]
+    err = np.array([np.linalg.norm(sv.T_sensor_target[:3, :3] @ r + sv.T_sensor_target[:3, 3] - port_true)
+                    for sv in tracked])
+    return tri, tracked, err
+
+
+@pytest.mark.parametrize("monitor", [False, True])
+def test_a_roll_the_scans_cannot_pin_is_not_published_valid(monkeypatch, monitor: bool) -> None:
+    """At 28 m the boom gives a few returns a frame at most: a track that PAH started 60 deg off
+    in roll stays there (the rim's facets give the registration a confident, wrong roll). Without
+    the turn monitor its port is published valid 0.4 m off under a protection level of
+    centimetres; with it no frame is valid and wrong (degraded while the turn is open, or moved to
+    the right roll)."""
+    cfg = _config(monitor)
+    tri, tracked, err = _fly_rolled(monkeypatch, cfg, 28.0, 60.0, 80)
+    assert len(tracked) >= 60
+    misleading = np.array([e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked)])
+    if monitor:
+        assert not misleading.any()
+        assert tri.slides.turns > 0
+        # each frame is either degraded or right
+        assert all(sv.valid.degraded or e < 0.05 for e, sv in zip(err, tracked))
+    else:
+        assert np.median(err) > 0.3
+        assert misleading.mean() > 0.5  # valid 0.47 m off under ~0.15 m, from 6 s on
+
+
+@pytest.mark.parametrize("roll_deg", [0.0, 90.0])
+def test_at_11_m_a_right_roll_turns_healthy_and_a_wrong_one_stays_degraded(monkeypatch, roll_deg: float) -> None:
+    """At 11 m the first probe finds the roll open; the scans then steer onto the features that
+    pin it. A track on the right roll sees every turn score clearly worse, and after the hold its
+    pose is published healthy to a centimetre; a track 90 deg off never sees its turn pinned and
+    stays degraded: no frame is valid and wrong either way."""
+    tri, tracked, err = _fly_rolled(monkeypatch, _config(True), 11.0, roll_deg, 100)
+    assert tri.slides.turns > 0
+    assert not any(e > sv.protection_level and sv.valid.pose for e, sv in zip(err, tracked))
+    last = tracked[-20:]
+    if roll_deg == 0.0:
+        assert all(sv.valid.pose and not sv.valid.degraded for sv in last)
+        assert np.all(err[-20:] < 0.02)
+    else:
+        assert all(sv.valid.degraded for sv in last)
+        assert np.all(err[-20:] > 0.3)
+
+
+def test_a_turn_that_scores_better_probe_after_probe_moves_the_track(monkeypatch) -> None:
+    """The switch: a far turn that beats the tracked pose by ``symmetry_margin`` at
+    ``symmetry_switch_checks`` probes in a row (the same turn) becomes the pending switch, and
+    :meth:`SlideMonitor.switch` restarts the filter on it; a lead that breaks the run resets it."""
+    from perception.pipeline import slides
+
+    cfg = _config(True)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon = tri.slides
+    T = approach_pose(cfg, target, 12.0)
+    flip = make_T(rotation_z(np.radians(120.0)))
+    res = RegistrationResult(T, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5,
+                             covariance=np.diag([1e-6] * 3 + [1e-5] * 3))
+    better = RegistrationResult(T @ flip, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5,
+                                covariance=np.diag([1e-6] * 3 + [1e-5] * 3))
+    lead = {"value": 0.2}
+
+    def verify(self, points, sigma, Ts, directions=None):  # type: ignore[no-untyped-def]
+        # the pose 120 deg round scores `lead` above every other
+        k = np.array([abs(np.trace(Ti[:3, :3].T @ better.T_sensor_target[:3, :3]) - 3.0) < 1e-6 for Ti in Ts])
+        return np.ones(len(Ts)), np.where(k, lead["value"], 0.0)
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "verify_poses", verify)
+    monkeypatch.setattr(slides, "icp", lambda points, model, T0, **kw: better
+                        if abs(np.trace(T0[:3, :3].T @ better.T_sensor_target[:3, :3]) - 3.0) < 0.2 else
+                        RegistrationResult(T, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5,
+                                           covariance=res.covariance))
+    tri.filter.initialize(0.0, T, np.eye(6) * 1e-6)
+    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None})()
+    pts = np.zeros((5, 3))
+    period = cfg.pipeline.integrity.turn_check_period_s
+    n = cfg.pipeline.symmetry_switch_checks
+    for k in range(n - 1):
+        mon.apply(pts, cloud, res, k * period, cfg.pipeline.icp, 10)
+        assert mon.pending_switch is None and mon.turn_votes == k + 1
+    lead["value"] = 0.0  # one probe where it does not lead: the run starts again
+    mon.apply(pts, cloud, res, (n - 1) * period, cfg.pipeline.icp, 10)
+    assert mon.turn_votes == 0
+    lead["value"] = 0.2
+    for k in range(n):
+        mon.apply(pts, cloud, res, (n + k) * period, cfg.pipeline.icp, 10)
+    assert mon.pending_switch is better
+    monkeypatch.setattr(tri.tracking, "outline_refine", lambda r, p, c: r)
+    assert mon.switch(pts, cloud, 2 * n * period)
+    assert mon.turn_switches == 1 and tri.stats.symmetry_switches == 1
+    np.testing.assert_allclose(tri.filter.T_sensor_target, better.T_sensor_target, atol=1e-9)
+    assert not mon.switch(pts, cloud, 2 * n * period)  # nothing pending any more
+
+
+def test_a_turn_adds_its_variance_about_its_own_axis_and_pivot() -> None:
+    """A held turn inflates a registration along ``[e x (o - q), e]`` (a point on the turn's
+    axis gets no position variance from it, the port off the axis gets ``(sigma d)^2``), and
+    :meth:`PoseFilter.floor_turn` raises the filter's attitude variance about the axis to the
+    turn's, moving its reference point with the turn, not the other directions."""
+    cfg = _config(True)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon = tri.slides
+    T = approach_pose(cfg, target, 20.0)
+    axis_t, pivot_t, s = np.array([0.0, 0.0, 1.0]), np.array([0.1, -0.2, 0.0]), 0.3
+    mon.hold(axis_t, s, 0.0, pivot_t)
+    res = RegistrationResult(T, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5,
+                             covariance=np.diag([1e-6] * 3 + [1e-6] * 3))
+    cov = mon.inflate(res).covariance
+    R, o = T[:3, :3], T[:3, 3]
+
+    def point_var(p_t: np.ndarray) -> float:  # variance of a target point's position, summed
+        J = np.hstack([np.eye(3), -skew(R @ p_t)])  # d p = d o + phi x (R p)
+        return float(np.trace(J @ cov @ J.T) - np.trace(J @ res.covariance @ J.T))
+
+    assert point_var(pivot_t + np.array([0.0, 0.0, 0.7])) == pytest.approx(0.0, abs=1e-12)
+    port = target.T_target_port[:3, 3]
+    d = np.linalg.norm((port - pivot_t)[:2])
+    assert point_var(port) == pytest.approx((s * d) ** 2, rel=1e-9)
+    e = R @ axis_t
+    assert float(e @ cov[3:, 3:] @ e) == pytest.approx(s**2 + 1e-6, rel=1e-9)
+
+    f = PoseFilter()
+    f.initialize(0.0, T, np.eye(6) * 1e-6)
+    P0 = f.P.copy()
+    q = R @ pivot_t + o
+    f.floor_turn(e, q, s)
+    assert float(e @ f.P[6:9, 6:9] @ e) == pytest.approx(s**2, rel=1e-9)
+    u = np.zeros(12)
+    u[0:3], u[6:9] = np.cross(e, f.p - q), e
+    np.testing.assert_allclose(f.P - P0, (s**2 - 1e-6) * np.outer(u, u), atol=1e-15)
+    with pytest.raises(ValueError, match="floor_turn"):
+        f.floor_turn(np.zeros(3), q, s)

@@ -141,6 +141,10 @@ class IntegrityConfig(StrictModel):
     turn_candidates: Annotated[Int, Field(ge=1, le=36)] = Field(
         2, description="turn monitor: the best-scoring far turns polished by ICP and judged"
     )
+    turn_far_every: Annotated[Int, Field(ge=1, le=1000)] = Field(
+        5, description="turn monitor: far turns that the last probes all ruled out by a wide "
+        "margin (10 ambiguity_margin), with no turn held, are looked at every this many probes"
+    )
 
 
 class ScanPlanConfig(StrictModel):

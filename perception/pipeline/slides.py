@@ -57,36 +57,43 @@ drifted prediction then settled in another bay (4 runs in 100 valid-but-wrong, 4
 0.6 m went 1 m off under its protection level with no hold, and 8 cm off with it.
 
 **A turn can be uncertain too** (``integrity.turn_check_period_s``): a cylinder bus's roll about
-its axis is pinned only by what breaks the symmetry (a thin boom, 0-3 of ~250 points a frame),
-and the registration's information, from a handful of points or the rim's 32 facets, still
-claimed 0.2-8 deg; ICP from the prediction stopped where it started or in the next facet's basin,
-the filter took the roll the prediction carried and a rate of 3 deg/s the target never had, and
-the off-axis port was published valid 0.83 m away under a 9 cm protection level. The turn probe
-is the slide probe for the weakest rotation ``e`` of the registration's covariance, near and
-far: the pose is turned about the line through the pivot ``q`` the covariance couples with
-``e`` (``q = o - g x e``, ``g = C_tr C_rr^-1 e``: a roll about a bus's axis moves no point of
-that axis). Near: by ``a = max(3 sigma, turn_probe_rad)`` both ways, ICP (capped at 10 iterations,
-as the twin monitor's) from each. Far: every ``turn_grid_deg`` round the circle (beyond ``2 a``)
-is scored as it stands, PAH's way (:meth:`~perception.estimation.pah.PAHDatabase.verify_poses`,
-one batch), and the ``turn_candidates`` best local maxima are polished by the capped ICP (a
-coarse sweep of 30/90/180 deg polished by ICP never reached the true roll: with a boom's few
-returns ICP barely turns, and the rim's facets hold it in the basin it starts in). A stop more
-than ``3 sigma`` from the answer about ``e`` that explains the scan about as well (its score
-within ``ambiguity_margin`` of the tracked pose's, as the twin monitor judges twins) is another
-answer the scan allows: the turn is uncertain by its offset. The near pushes and the best far
-turn are judged on their mean lead over the last ``symmetry_switch_checks`` probes: the boom's
-returns vary from frame to frame, and single frames with none of them made turns that the others
-had ruled out by 0.3-2.7 look alike, holding the bus degraded at 12 m with its roll right to
-1 deg. Where the near pushes stay off, ICP runs once more from ``2 a``, and ``rho`` extrapolates
-as above; a turn that slides freely is uniform on the circle (``rho > 0.9``: sigma
-``pi / sqrt(3)``, also the cap). A stop that explains the scan clearly worse is not evidence (a
-30 deg turn of a well-pinned target may not come back, and need not). The turn is held, added to
-the registrations along ``[e x (o - q), e]`` and floored in the published attitude
-(``slide_position_floor``) as a slide is. Its rate is not floored: the deweighted registrations
-teach the filter no rate about it, and ``sigma / tau`` of a free turn (10 deg/s) spun the
-estimate 90 deg in 2 s. A rotation the registration already reports degenerate
-(sigma over 0.5 rad) is not probed: the frame says so itself, and the filter's continuity
-carries the turn through it.
+its axis is pinned only by what breaks the symmetry (a thin boom, 0-3 of ~250 points a frame), and
+the registration's information, from a handful of points or the rim's 32 facets, still claimed
+0.2-8 deg; ICP from the prediction stopped where it started or in the next facet's basin, the
+filter took the roll the prediction carried and a rate of 3 deg/s the target never had, and the
+off-axis port was published valid 0.83 m away under a 9 cm protection level. The turn probe is the
+slide probe for the weakest rotation ``e`` of the registration's covariance, near and far: the pose
+is turned about the line through the pivot ``q`` the covariance couples with ``e`` (``q = o - g x
+e``, ``g = C_tr C_rr^-1 e``: a roll about a bus's axis moves no point of that axis). Near: by ``a =
+max(3 sigma, turn_probe_rad)`` both ways, ICP (capped at 10 iterations, as the twin monitor's) from
+each. Far: every ``turn_grid_deg`` round the circle (beyond ``2 a``) is scored as it stands, PAH's
+way (:meth:`~perception.estimation.pah.PAHDatabase.verify_poses`, one batch), and the
+``turn_candidates`` best local maxima are polished by the capped ICP (a coarse sweep of 30/90/180
+deg polished by ICP never reached the true roll: with a boom's few returns ICP barely turns, and
+the rim's facets hold it in the basin it starts in). A stop more than ``3 sigma`` from the answer
+about ``e`` that explains the scan about as well (its score within ``ambiguity_margin`` of the
+tracked pose's, as the twin monitor judges twins) is another answer the scan allows: the turn is
+uncertain by its offset. The near pushes and the best far turn are judged on their mean lead over
+the last ``symmetry_switch_checks`` probes: the boom's returns vary from frame to frame, and single
+frames with none of them made turns that the others had ruled out by 0.3-2.7 look alike, holding
+the bus degraded at 12 m with its roll right to 1 deg. Far turns that the last probes all ruled out
+by a wide margin (ten ``ambiguity_margin``), with no turn held, are looked at every
+``turn_far_every`` probes only: on a healthy track they score 1-3 below it, and they are most of a
+probe's cost. Where a near push stays off (ICP settled there, explaining the scan as well), ICP
+runs once more from ``2 a``: a valley that slides on (``rho > 0.9``) is free, uniform on the circle
+(sigma ``pi / sqrt(3)``, also the cap); a bounded one of a few degrees is not held (a generated
+assembly's roll 1-3 m from the port sat in such a 3-7 deg valley, which the filter, averaging over
+a moving aspect, flew inside its bound; held, it stopped the docking), nor is a push the iteration
+cap stopped on its way back (a weak slope, not a valley). A stop that explains the scan clearly
+worse is not evidence (a 30 deg turn of a well-pinned target may not come back, and need not). The
+turn is held, added to the registrations along ``[e x (o - q), e]`` and floored in the published
+attitude (``slide_position_floor``) as a slide is. Its rate is not floored: the deweighted
+registrations teach the filter no rate about it, and ``sigma / tau`` of a free turn (10 deg/s) spun
+the estimate 90 deg in 2 s. The mission's approach corridor, where configured, rules a turn out as
+it rules out a twin (a box-like assembly flipped about an in-plane axis fits its front face as
+well, port behind it: held at 104 deg, it kept a docking degraded at 3-8 m). A rotation the
+registration already reports degenerate (sigma over 0.5 rad) is not probed: the frame says so
+itself, and the filter's continuity carries the turn through it.
 
 **A held turn lapses only on evidence that it is pinned**: ``slide_hold_s`` after it was last
 found, and once ``symmetry_switch_checks`` probes in a row that ran found no turn, or one far
@@ -117,6 +124,7 @@ import numpy.typing as npt
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix
+from perception.pipeline.search import corridor_constraint
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:
@@ -178,6 +186,7 @@ class SlideMonitor:
         self.turn_leads = np.empty((0, 3))  # the last probes' leads: near pushes, best far turn
         self.turn_record: dict[str, object] = {}  # the last turn probe's figures (diagnostics)
         self.turn_quiet = 0  # probes in a row that ran and found no turn
+        self._far_wait = 0  # probes before the far turns are looked at again
         self.axis_target: FloatArray | None = None
         self.sigma_m = 0.0
         self.turn_axis_target: FloatArray | None = None
@@ -317,8 +326,22 @@ class SlideMonitor:
         grid = np.arange(1, round(2.0 * math.pi / step)) * step
         grid = np.where(grid > math.pi, grid - 2.0 * math.pi, grid)
         grid = np.sort(grid[np.abs(grid) > 2.0 * a])
+        # The mission's approach corridor, where configured, rules a turn out as it rules out a
+        # twin (a box-like assembly flipped about an in-plane axis fits its front face as well,
+        # port behind it: held at 104 deg, it kept a docking degraded at 3-8 m).
+        corridor = corridor_constraint(self.tri.pc, self.tri.R_nominal)
+        if corridor is not None and grid.size:
+            grid = grid[corridor.admits_batch(np.stack([turned(float(x)) for x in grid]))]
         far: list[float] = []
-        if grid.size:
+        # Far turns the last probes all ruled out by a wide margin (10 ambiguity_margin), with
+        # no turn held, are looked at again every turn_far_every probes only (most of a probe's
+        # cost; a healthy track's far turns score 1-3 below it).
+        n = self.tri.pc.symmetry_switch_checks
+        wide = (len(self.turn_leads) >= n and not self.turn_held()
+                and float(self.turn_leads[:, 2].max()) < -10.0 * ig.ambiguity_margin)
+        skip_far = wide and self._far_wait > 0
+        self._far_wait = (self._far_wait - 1 if skip_far else ig.turn_far_every - 1) if wide else 0
+        if grid.size and not skip_far:
             _, gs = verify(pts, cloud.sigma, np.stack([turned(float(x)) for x in grid]), cloud.directions)
             peak = (gs >= np.roll(gs, 1)) & (gs >= np.roll(gs, -1))
             order = np.argsort(-np.where(peak, gs, -np.inf), kind="stable")[: ig.turn_candidates]
@@ -332,11 +355,16 @@ class SlideMonitor:
             ends = [alt.T_sensor_target for alt in alts]
             off = np.array([abs(float(fast_matrix_to_rotvec(Te[:3, :3] @ T[:3, :3].T) @ e)) for Te in ends])
             _, score = verify(pts, cloud.sigma, np.stack([T, *ends]), cloud.directions)
-            return off, score[1:] - score[0], alts
+            lead = score[1:] - score[0]
+            if corridor is not None:
+                lead = np.where(corridor.admits_batch(np.stack(ends)), lead, -np.inf)
+            return off, lead, alts
 
         off, lead, alts = run([a, -a, *far])
         k_best = int(np.argmax(lead))
         self._vote_turn(T, float(lead[k_best]), alts[k_best])
+        if skip_far:  # the far turns stand as last judged
+            off, lead = np.append(off, 0.0), np.append(lead, self.turn_leads[-1, 2])
         # The near pushes and the best far turn are judged on their mean lead over the last
         # symmetry_switch_checks probes: the few returns that pin the turn (a boom's) vary from
         # frame to frame, and single frames with none of them made turns the others had ruled
@@ -345,27 +373,39 @@ class SlideMonitor:
         # pushes probe it); one still on its way back, capped, was taken for another answer on
         # the ISS-like port at 16 m (held 3-6 deg, degraded, and the approach stalled).
         far_ok = off[2:] > max(3.0 * sigma, 2.0 * a)
+        if skip_far:
+            far_ok[:] = False
         k_far = 2 + int(np.argmax(np.where(far_ok, lead[2:], -np.inf))) if np.any(far_ok) else -1
         # (leads floored at -1: one probe with no far turn must not outweigh the others)
-        judged = np.maximum([lead[0], lead[1], lead[k_far] if k_far >= 0 else -1.0], -1.0)
-        n = self.tri.pc.symmetry_switch_checks
+        far_lead = lead[-1] if skip_far else (lead[k_far] if k_far >= 0 else -1.0)
+        judged = np.maximum([lead[0], lead[1], far_lead], -1.0)
         self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-n:]
         mean_lead = self.turn_leads.mean(axis=0)
         self.turn_record = {"free": False, "off_deg": np.degrees(off), "lead": lead,
                             "converged": np.array([alt.converged for alt in alts]), "mean_lead": mean_lead}
         alike = mean_lead >= -ig.ambiguity_margin
-        found = np.array([off[0] > 3.0 * sigma, off[1] > 3.0 * sigma, k_far >= 0])
-        if not np.any(found & alike):
-            self.turn_quiet += 1
-            return
-        self.turns += 1
-        s_turn = float(np.max(np.array([off[0], off[1], off[k_far] if k_far >= 0 else 0.0])[found & alike]))
+        # A near push counts where ICP settled: one the iteration cap stopped on its way back
+        # (a weak slope, not a valley) held a generated assembly's roll at 3-5 deg and its pose
+        # degraded in the last metres of a docking it had flown within its bound.
+        found = np.array([off[0] > 3.0 * sigma and alts[0].converged,
+                          off[1] > 3.0 * sigma and alts[1].converged, k_far >= 0])
+        # A far turn alike is another basin: the turn is uncertain by its offset. The near pushes
+        # count only where the valley is free (the second push slides on, rho > 0.9): a bounded
+        # valley of a few degrees (a generated assembly's roll at 1-3 m from the port, 3-7 deg)
+        # is the same at every aspect only if the aspect stands still, and the filter that
+        # averaged it flew that docking inside its bound; held, it stopped the docking.
+        s_turn = float(off[k_far]) if found[2] and alike[2] else 0.0
         near = found[:2] & alike[:2]
         if np.any(near):  # the near pushes did not come back: a flat valley or a basin next door
             k = int(np.argmax(np.where(near, off[:2], -1.0)))
             off2, lead2, _ = run([2.0 * a if k == 0 else -2.0 * a])
             rho = min(max((float(off2[0]) - float(off[k])) / a, 0.0), 1.0) if lead2[0] >= -ig.ambiguity_margin else 0.0
-            s_turn = max(s_turn, _FREE_TURN_RAD if rho > 0.9 else float(off[k]) / (1.0 - rho))
+            if rho > 0.9:
+                s_turn = _FREE_TURN_RAD
+        if s_turn <= 0.0:
+            self.turn_quiet += 1
+            return
+        self.turns += 1
         self.turn_axis_target, self.turn_pivot_target = R.T @ e, R.T @ (q - o)
         self.turn_sigma_rad = min(s_turn, _FREE_TURN_RAD)
 
@@ -419,6 +459,10 @@ class SlideMonitor:
                 else:
                     f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
         return f
+
+    def turn_held(self) -> bool:
+        """A turn is held."""
+        return any(h.pivot is not None for h in self.held)
 
     def _held_turn(self, axis_target: FloatArray) -> Held | None:
         """The held turn about ``axis_target`` (within 20 deg), if any."""

@@ -127,7 +127,9 @@ class SearchMode:
         """Start the track on ``res``: the filter, the track's bookkeeping, the twin monitor, and
         tracking mode; returns the frame's output (the pose, with ``out``'s bearing fix)."""
         tri = self.tri
-        # The slide monitor probes a new track's first registrations (this one included).
+        # The slide monitor probes a new track's first registrations (this one included), on
+        # this search frame: no tracking frame's pattern to refine an outline on.
+        tri.tracking.frame_pattern = None
         tri.slides.start()
         res = tri.slides.apply(cloud.points, cloud, res, t_ref, tri.logic.icp_config_for(cloud.subsystem), 0)
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)

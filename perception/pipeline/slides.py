@@ -350,8 +350,12 @@ class SlideMonitor:
         def run(angles: list[float]) -> tuple[FloatArray, FloatArray, list[RegistrationResult]]:
             """Offsets about ``e`` [rad] where ICP stops from the turned poses, their PAH score
             leads over ``res``, and the registrations."""
-            alts = [icp(pts, self.tri.model, turned(x), sigma=cloud.sigma, directions=cloud.directions,
-                        config=cfg, coarse=False) for x in angles]
+            # Each stop refined as the tracked registration was (the scan's outline, where ICP
+            # leaves axes unobserved): plain ICP slid along a flat port face's roll that the
+            # outline pins, and the false free turns held generated flat faces degraded.
+            alts = [self.tri.tracking.outline_refine(
+                icp(pts, self.tri.model, turned(x), sigma=cloud.sigma, directions=cloud.directions,
+                    config=cfg, coarse=False), pts, cloud) for x in angles]
             ends = [alt.T_sensor_target for alt in alts]
             off = np.array([abs(float(fast_matrix_to_rotvec(Te[:3, :3] @ T[:3, :3].T) @ e)) for Te in ends])
             _, score = verify(pts, cloud.sigma, np.stack([T, *ends]), cloud.directions)
@@ -406,6 +410,15 @@ class SlideMonitor:
             self.turn_quiet += 1
             return
         self.turns += 1
+        if s_turn < _FREE_TURN_RAD and alts[k_far].converged:
+            # Another basin ICP settled in: the line the pose turns about is the screw axis of
+            # that move, not the covariance's coupling (unreliable along a direction this weak:
+            # a square plate's quarter-turn twin about its port's own axis was put a metre off
+            # and held the pose degraded at 0.74 m).
+            Ta = alts[k_far].T_sensor_target
+            Rm = Ta[:3, :3] @ R.T
+            q = np.linalg.lstsq(np.eye(3) - Rm, Ta[:3, 3] - Rm @ o, rcond=1e-9)[0]
+            q = q - float((q - o) @ e) * e  # the point of the line nearest the target origin
         self.turn_axis_target, self.turn_pivot_target = R.T @ e, R.T @ (q - o)
         self.turn_sigma_rad = min(s_turn, _FREE_TURN_RAD)
 

@@ -226,8 +226,11 @@ class SlideMonitor:
             if self.axis_target is not None:
                 self.hold(self.axis_target, self.sigma_m, t_ref)
         if due(ig.turn_check_period_s, self.turn_checked_t):
-            self.turn_checked_t = t_ref
-            self.probe_turn(pts, cloud, res, icp_cfg)
+            # A frame that leaves the turn degenerate is not probed; the next one is (probing
+            # on schedule only, a track PAH started 60 deg off in roll met a degenerate frame at
+            # every probe while the frames between claimed the roll, and was published wrong).
+            if self.probe_turn(pts, cloud, res, icp_cfg):
+                self.turn_checked_t = t_ref
             if ig.slide_hold_s <= 0.0:
                 self.held = [h for h in self.held if h.pivot is None]
             if self.turn_axis_target is not None:
@@ -287,8 +290,9 @@ class SlideMonitor:
         self.axis_target = T[:3, :3].T @ e
 
     def probe_turn(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
-                   icp_cfg: ICPConfig) -> None:
-        """Turn ``res`` about its weakest rotation, near and far; set the turn (module doc)."""
+                   icp_cfg: ICPConfig) -> bool:
+        """Turn ``res`` about its weakest rotation, near and far; set the turn (module doc).
+        False when the registration leaves that rotation degenerate (nothing probed)."""
         ig = self.tri.pc.integrity
         self.turn_axis_target = self.turn_pivot_target = None
         self.turn_sigma_rad = 0.0
@@ -308,7 +312,7 @@ class SlideMonitor:
             # The frame says itself that it does not pin the turn: nothing to probe, and no
             # evidence either way (a held turn neither renews nor counts towards lapsing).
             self.turn_record = {"free": True}
-            return
+            return False
         a = max(3.0 * sigma, ig.turn_probe_rad)
         cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
 
@@ -408,7 +412,7 @@ class SlideMonitor:
                 s_turn = _FREE_TURN_RAD
         if s_turn <= 0.0:
             self.turn_quiet += 1
-            return
+            return True
         self.turns += 1
         if s_turn < _FREE_TURN_RAD and alts[k_far].converged:
             # Another basin ICP settled in: the line the pose turns about is the screw axis of
@@ -421,6 +425,7 @@ class SlideMonitor:
             q = q - float((q - o) @ e) * e  # the point of the line nearest the target origin
         self.turn_axis_target, self.turn_pivot_target = R.T @ e, R.T @ (q - o)
         self.turn_sigma_rad = min(s_turn, _FREE_TURN_RAD)
+        return True
 
     def _vote_turn(self, T: FloatArray, lead: float, alt: RegistrationResult) -> None:
         """A vote for the turned pose ``alt`` when it explains the scan better than the tracked

@@ -204,7 +204,10 @@ def test_a_plate_whose_edges_are_in_view_is_placed_by_its_outline() -> None:
     nine poses in ten or more are valid, every error is inside the protection level. With the seed's
     range strategy and no outline, it degrades instead."""
     target = _plate(2.0)
-    tri, T0, tracked = _track_still(target, 4.0)
+    # (the turn monitor off: the plate's quarter turns about its port's axis are real twins, and
+    # on some BLAS builds the monitor holds them, degrading half of these poses: a bound too wide,
+    # not a wrong one; this test is about the outline)
+    tri, T0, tracked = _track_still(target, 4.0, pipeline__integrity__turn_check_period_s=None)
     r = target.T_target_port[:3, 3]
     late = tracked[10:]
     assert late and np.mean([sv.valid.pose for sv in late]) >= 0.9

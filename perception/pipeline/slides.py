@@ -371,21 +371,17 @@ class SlideMonitor:
         off, lead, alts = run([a, -a, *far])
         k_best = int(np.argmax(lead))
         self._vote_turn(T, float(lead[k_best]), alts[k_best])
-        if skip_far:  # the far turns stand as last judged
-            off, lead = np.append(off, 0.0), np.append(lead, self.turn_leads[-1, 2])
-        # The near pushes and the best far turn are judged on their mean lead over the last
-        # symmetry_switch_checks probes: the few returns that pin the turn (a boom's) vary from
-        # frame to frame, and single frames with none of them made turns the others had ruled
-        # out by 0.3-2.7 look alike.
         # A far turn that ICP brought back within 2 a is the tracked pose's own basin (the near
         # pushes probe it); one still on its way back, capped, was taken for another answer on
         # the ISS-like port at 16 m (held 3-6 deg, degraded, and the approach stalled).
         far_ok = off[2:] > max(3.0 * sigma, 2.0 * a)
-        if skip_far:
-            far_ok[:] = False
         k_far = 2 + int(np.argmax(np.where(far_ok, lead[2:], -np.inf))) if np.any(far_ok) else -1
-        # (leads floored at -1: one probe with no far turn must not outweigh the others)
-        far_lead = lead[-1] if skip_far else (lead[k_far] if k_far >= 0 else -1.0)
+        # The near pushes and the best far turn are judged on their mean lead over the last
+        # symmetry_switch_checks probes: the few returns that pin the turn (a boom's) vary from
+        # frame to frame, and single frames with none of them made turns the others had ruled
+        # out by 0.3-2.7 look alike. Skipped far turns stand as last judged; leads are floored
+        # at -1, so one probe with no far turn does not outweigh the others.
+        far_lead = self.turn_leads[-1, 2] if skip_far else (lead[k_far] if k_far >= 0 else -1.0)
         judged = np.maximum([lead[0], lead[1], far_lead], -1.0)
         self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-n:]
         mean_lead = self.turn_leads.mean(axis=0)

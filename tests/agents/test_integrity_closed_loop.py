@@ -2,9 +2,10 @@
 user's mesh file: no valid pose whose port error exceeds its protection level, ever. An assembly
 with features near its port docks; a plain flat face that fills the field of view in the last
 metre (nothing there pins its in-plane position) ends in a safe hold or a docking, never in a
-collision. (A generated cylinder bus is not here: on some seeds and BLAS builds its track locks
-onto the near-symmetric roll twin at 10-15 m and publishes it valid; an open problem that
-``tridar-env bench integrity`` reports.)"""
+collision. (A generated cylinder bus is not here: the turn monitor keeps its weak roll degraded,
+so it seldom docks, and a track PAH started 26 deg off in roll at 32 m was still published wrong
+for 19 s before a probe found the turn; an open problem that ``tridar-env bench integrity``
+reports. ``tests/perception/test_turns.py`` flies it open loop.)"""
 
 from __future__ import annotations
 

@@ -405,21 +405,15 @@ class PoseFilter:
         the variance goes in along ``[e x (p - pivot), e]``, not along the attitude alone: a roll
         about a bus's axis leaves a point on that axis where it is.
         """
-        e = np.asarray(axis, dtype=np.float64).reshape(3)
-        n = float(np.linalg.norm(e))
         q = np.asarray(pivot, dtype=np.float64).reshape(3)
-        if not (np.isfinite(n) and n > 0 and np.isfinite(sigma) and np.all(np.isfinite(q))):
-            raise ValueError(f"floor_turn(axis={e.tolist()}, pivot={q.tolist()}, sigma={sigma}); "
-                             "expected a finite non-zero axis, a finite pivot and a finite sigma")
-        e = e / n
-        gap = float(sigma) ** 2 - float(e @ self.P[6:9, 6:9] @ e)
-        if gap > 0.0:
-            u = np.zeros(12)
-            u[0:3] = np.cross(e, self.p - q)
-            u[6:9] = e
-            self.P = self.P + gap * np.outer(u, u)
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"floor_turn(pivot={q.tolist()}); expected a finite pivot [m]")
+        self._floor(slice(6, 9), axis, sigma, "floor_turn", lever=self.p - q)
 
-    def _floor(self, block: slice, axis: npt.ArrayLike, sigma: float, name: str) -> None:
+    def _floor(self, block: slice, axis: npt.ArrayLike, sigma: float, name: str,
+               lever: FloatArray | None = None) -> None:
+        """Raise the variance of ``block`` along ``axis`` to ``sigma**2``; with ``lever``, an
+        attitude turn that also moves the reference point by ``e x lever`` (position block)."""
         e = np.asarray(axis, dtype=np.float64).reshape(3)
         n = float(np.linalg.norm(e))
         if not (np.isfinite(n) and n > 0 and np.isfinite(sigma)):
@@ -428,9 +422,11 @@ class PoseFilter:
         e = e / n
         gap = float(sigma) ** 2 - float(e @ self.P[block, block] @ e)
         if gap > 0.0:
-            P = self.P.copy()
-            P[block, block] += gap * np.outer(e, e)
-            self.P = P
+            u = np.zeros(12)
+            u[block] = e
+            if lever is not None:
+                u[0:3] = np.cross(e, lever)
+            self.P = self.P + gap * np.outer(u, u)
 
     @property
     def T_sensor_target(self) -> FloatArray:

@@ -156,6 +156,14 @@ class Held(NamedTuple):
     pivot: FloatArray | None = None
 
 
+def _turn_twist(R: FloatArray, h: Held) -> FloatArray:
+    """(6,) twist about the target origin ``o`` (sensor axes) of a unit turn about held turn
+    ``h`` at attitude ``R``: ``[e x (o - q), e]``, with ``o - q = -R pivot``."""
+    assert h.pivot is not None
+    e = R @ h.axis
+    return np.concatenate([np.cross(e, -(R @ h.pivot)), e])
+
+
 class SlideMonitor:
     """The slide monitor of the pipeline's track (module docstring).
 
@@ -184,7 +192,6 @@ class SlideMonitor:
         self.turn_candidate: FloatArray | None = None
         self.pending_switch: RegistrationResult | None = None
         self.turn_leads = np.empty((0, 3))  # the last probes' leads: near pushes, best far turn
-        self.turn_record: dict[str, object] = {}  # the last turn probe's figures (diagnostics)
         self.turn_quiet = 0  # probes in a row that ran and found no turn
         self._far_wait = 0  # probes before the far turns are looked at again
         self.axis_target: FloatArray | None = None
@@ -302,17 +309,16 @@ class SlideMonitor:
         lam, V = np.linalg.eigh(C[3:, 3:])
         e = V[:, -1]
         sigma = math.sqrt(max(float(lam[-1]), 0.0))
+        if not sigma < _TURN_PROBED_BELOW_RAD:
+            # The frame says itself that it does not pin the turn: nothing to probe, and no
+            # evidence either way (a held turn neither renews nor counts towards lapsing).
+            return False
         # The translation the covariance couples with a unit turn about e, and the line it turns
         # about: e x (o - q) = g, taken perpendicular to e.
         g = C[:3, 3:] @ np.linalg.lstsq(C[3:, 3:], e, rcond=1e-12)[0]
         o = T[:3, 3]
         q = o - np.cross(g, e)
         R = T[:3, :3]
-        if not sigma < _TURN_PROBED_BELOW_RAD:
-            # The frame says itself that it does not pin the turn: nothing to probe, and no
-            # evidence either way (a held turn neither renews nor counts towards lapsing).
-            self.turn_record = {"free": True}
-            return False
         a = max(3.0 * sigma, ig.turn_probe_rad)
         cfg = icp_cfg.model_copy(update={"max_iterations": min(icp_cfg.max_iterations, 10)})
 
@@ -385,8 +391,6 @@ class SlideMonitor:
         judged = np.maximum([lead[0], lead[1], far_lead], -1.0)
         self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-n:]
         mean_lead = self.turn_leads.mean(axis=0)
-        self.turn_record = {"free": False, "off_deg": np.degrees(off), "lead": lead,
-                            "converged": np.array([alt.converged for alt in alts]), "mean_lead": mean_lead}
         alike = mean_lead >= -ig.ambiguity_margin
         # A near push counts where ICP settled: one the iteration cap stopped on its way back
         # (a weak slope, not a valley) held a generated assembly's roll at 3-5 deg and its pose
@@ -489,11 +493,7 @@ class SlideMonitor:
         turns = [h for h in self.held if h.pivot is not None]
         if not turns:
             return None
-        h = max(turns, key=lambda h: h.sigma)
-        assert h.pivot is not None
-        R = T[:3, :3]
-        e = R @ h.axis
-        return np.concatenate([np.cross(e, -(R @ h.pivot)), e])
+        return _turn_twist(T[:3, :3], max(turns, key=lambda h: h.sigma))
 
     @staticmethod
     def _pivot(f: PoseFilter, pivot_target: FloatArray) -> FloatArray:
@@ -512,7 +512,7 @@ class SlideMonitor:
             e = R @ h.axis
             if h.pivot is None:
                 cov[:3, :3] += h.sigma**2 * np.outer(e, e)
-            else:  # about the target origin o: [e x (o - q), e], with o - q = -R pivot
-                u = np.concatenate([np.cross(e, -(R @ h.pivot)), e])
+            else:
+                u = _turn_twist(R, h)
                 cov += h.sigma**2 * np.outer(u, u)
         return dataclasses.replace(res, covariance=cov)

@@ -204,6 +204,26 @@ class TriDAR:
         self.pah.near_symmetries()
 
     # ------------------------------------------------------------------ the frame
+    def take_ego(self, t: float, ego: EgoMotion) -> None:
+        """Carry the filter to ``t`` [s] over the host's step just flown, then hold ``ego`` from now on.
+
+        ``ego`` is read at the end of that step: its accelerometer gives the step's mean
+        acceleration, and the mean rate is that of the gyro's readings at the step's two ends.
+        (Holding the previous step's readings over it lagged the thrust by one step: on a
+        tumbling target the sync chaser's manoeuvres put the prediction 6 cm off within a
+        second at 57 m, against a flash registration good to 1 mm, and the filter's gate
+        restarted the track every second.)
+        """
+        if not isinstance(ego, EgoMotion):
+            raise ValueError(f"ego={type(ego).__name__}; expected an EgoMotion")
+        if self.filter.initialized and self.filter.t < t:
+            old = self.ego
+            span = ego if old is None else EgoMotion(0.5 * (old.omega + ego.omega), ego.accel)
+            self.filter.set_ego(span)
+            self.filter.predict(t)
+        self.filter.set_ego(ego)
+        self.ego = ego
+
     def step(self, scene: TruthScene | PointCloud, t: float, ego: EgoMotion | None = None) -> StateVector:
         """Run one frame at time ``t`` [s] and publish the newest available state.
 
@@ -216,13 +236,7 @@ class TriDAR:
         if not np.isfinite(t):
             raise ValueError(f"t={t!r}; expected a finite time [s]")
         if ego is not None and self.pc.ego_motion:
-            if not isinstance(ego, EgoMotion):
-                raise ValueError(f"ego={type(ego).__name__}; expected an EgoMotion")
-            # The old rates held until now; the new ones from now on.
-            if self.filter.initialized and self.filter.t < t:
-                self.filter.predict(t)
-            self.filter.set_ego(ego)
-            self.ego = ego
+            self.take_ego(t, ego)
         if self.logic.restart_due(t) and self.logic.mode != Mode.BEARING and not self._restart_inhibited():
             self._restart(t)
         if t >= self.busy_until - 1e-12:

@@ -177,3 +177,37 @@ def test_imu_noise_follows_its_configured_model() -> None:
     quiet = _world("tumbling_target")
     quiet.step(np.zeros(3), np.zeros(3))
     np.testing.assert_array_equal(quiet.gyro(), quiet.chaser_angular_velocity_body)
+
+
+@pytest.mark.parametrize("mission", ["tumbling_target", "final_approach"])
+def test_the_pipeline_filter_predicts_the_hosts_manoeuvres_from_its_imu(mission: str) -> None:
+    """A filter started on the truth and carried by ``TriDAR.take_ego`` alone (no measurement)
+    follows the relative pose through random thrust and torque every step: the IMU reading at a
+    step's end describes the step just flown. Holding it over the next step instead (the old
+    order) put the tumbling chaser's prediction 3 cm off after 1 s and 5 cm after 3 s."""
+    from perception.geometry import pose_error
+    from perception.pipeline import TriDAR
+
+    cfg = load_config(mission)
+    target = load_target(cfg.target.name)
+    w = World(cfg, target)
+    w.reset(np.random.default_rng(3))
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(0))
+    rng = np.random.default_rng(5)
+    torque = (lambda: rng.uniform(-0.5, 0.5, 3)) if w.controlled_attitude else (lambda: None)
+    w.step(np.zeros(3), torque())
+    s = w.sensor_truth()
+    tri.take_ego(w.t, w.sensor_ego())
+    tri.filter.initialize(w.t, s.T_sensor_target, np.eye(6) * 1e-8, velocity=s.velocity,
+                          omega=s.angular_velocity)
+    errors = []
+    for _ in range(int(round(6.0 / w.dt))):
+        w.step(rng.uniform(-10.0, 10.0, 3), torque())
+        tri.take_ego(w.t, w.sensor_ego())
+        errors.append(pose_error(tri.filter.pose_at(w.t), w.sensor_truth().T_sensor_target))
+    e = np.array(errors)
+    one_s = int(round(1.0 / w.dt)) - 1
+    # measured: 0.03 mm after 1 s, 1.1 mm after 6 s (the accelerometer's noise, integrated)
+    assert e[one_s, 0] < 2e-4 and e[-1, 0] < 3e-3
+    assert e[:, 1].max() < 0.005  # [deg]

@@ -60,6 +60,31 @@ def _pose(R: FloatArray, t: FloatArray | None = None) -> FloatArray:
     return T
 
 
+def _aim_sensor(R_lvlh_chaser: FloatArray, r_chaser: FloatArray, T_chaser_sensor: FloatArray) -> FloatArray:
+    """The chaser attitude nearest ``R_lvlh_chaser`` whose sensor boresight (the sensor's +z)
+    points at the LVLH origin (the target's centre of mass), the chaser at ``r_chaser``.
+
+    The smallest turn that takes the boresight onto the line of sight; the line of sight starts
+    at the sensor, which the turn moves about the chaser's centre, so the turn is found again
+    from the moved sensor until it is nil (each pass shrinks it by about mount / range).
+    """
+    R = np.asarray(R_lvlh_chaser, dtype=np.float64)
+    for _ in range(50):
+        los = -(r_chaser + R @ T_chaser_sensor[:3, 3])
+        b = R @ T_chaser_sensor[:3, 2]
+        axis = np.cross(b, los)
+        s, c = float(np.linalg.norm(axis)), float(b @ los)
+        if s <= 1e-12 * max(abs(c), 1e-300):
+            if c >= 0.0:  # on target (or the sensor at the centre of mass: nothing to aim at)
+                return R
+            axis = np.cross(b, np.eye(3)[int(np.argmin(np.abs(b)))])  # pointing straight away
+            axis /= np.linalg.norm(axis)
+            R = Rotation.from_rotvec(np.pi * axis).as_matrix() @ R
+            continue
+        R = Rotation.from_rotvec(axis * (math.atan2(s, c) / s)).as_matrix() @ R
+    return R
+
+
 def _frozen(a: FloatArray) -> FloatArray:
     """Mark an array that is shared for a whole episode read-only (mutating it is a bug)."""
     a.setflags(write=False)
@@ -332,7 +357,8 @@ class World:
         self.state = np.concatenate([r_chaser, v])
         if self.controlled_attitude:
             err = Rotation.from_rotvec(rng.standard_normal(3) * np.deg2rad(1.0))
-            R_i_c = err * Rotation.from_matrix(R_lc)  # inertial frame == LVLH at t = 0
+            R_start = _aim_sensor(R_lc, r_chaser, self.T_chaser_sensor) if ini.aim_sensor else R_lc
+            R_i_c = err * Rotation.from_matrix(R_start)  # inertial frame == LVLH at t = 0
             self._q_i_chaser = np.roll(R_i_c.as_quat(), 1)
             self._w_chaser = R_i_c.inv().apply([0.0, 0.0, self.n])  # co-rotating with LVLH
         sb = math.radians(ch.gyro_bias_deg_s)

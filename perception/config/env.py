@@ -84,6 +84,13 @@ class InitialStateConfig(StrictModel):
     lateral_dispersion_m: NonNegRange = 0.5
     velocity_dispersion_m_s: NonNegSpeed = 0.005
     closing_speed_m_s: NonNegSpeed = 0.0
+    aim_sensor: StrictBool = Field(
+        True, description="with controlled attitude (dynamics.chaser.attitude: controlled), the "
+        "chaser starts turned so that its sensor's boresight points at the target's centre of "
+        "mass (the hand-over from far-range navigation), then the 1-deg attitude error; False "
+        "starts it aligned with the port axis, which puts a target more than ~15 deg off the "
+        "axis outside the TriDAR's field of view"
+    )
     pose_known: StrictBool = Field(
         False, description="the pipeline starts from the true relative pose at reset (undocking: "
         "the mated pose is known), as an external seed for its first acquisition"

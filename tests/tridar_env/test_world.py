@@ -67,6 +67,47 @@ def test_initial_state_faces_the_port_on_its_axis() -> None:
     assert w.sensor_truth().T_sensor_target[2, 3] > 0
 
 
+
+@pytest.mark.parametrize("mission", ["tumbling_target", "seed003"])
+def test_a_controlled_chaser_starts_with_its_sensor_on_the_target(mission: str) -> None:
+    """Far off the port axis (10-25 m at 45-75 m, outside the TriDAR's 15 deg half field of view)
+    the hand-over aims the sensor at the target's centre, within the reset's 1 deg attitude error;
+    ``aim_sensor: false`` keeps the chaser parallel to the port axis, the target off boresight."""
+    for seed in range(12):
+        kw = {"env__initial__lateral_dispersion_m": 15.0, "env__initial__range_m": 60.0,
+              "env__initial__range_dispersion_m": 8.0}
+        off = []
+        for aim in (True, False):
+            cfg = load_config(mission, env__initial__aim_sensor=aim, **kw)
+            w = World(cfg, load_target(cfg.target.name))
+            w.reset(np.random.default_rng(seed))
+            p = w.sensor_truth().T_sensor_target[:3, 3]
+            off.append(np.degrees(np.arccos(p[2] / np.linalg.norm(p))))
+            lateral = w.contact().lateral_offset
+        assert off[0] < 4.0, (seed, off)
+        # unaimed, the target sits where the offset puts it (within the same 1 deg error)
+        assert off[1] == pytest.approx(np.degrees(np.arctan2(lateral, 60.0)), abs=12.0)
+        assert off[1] > off[0] or lateral < 2.0
+
+
+def test_aim_sensor_turns_the_boresight_onto_the_line_of_sight_by_the_smallest_turn() -> None:
+    from tridar_env.world import _aim_sensor
+
+    rng = np.random.default_rng(7)
+    T_cs = np.eye(4)
+    T_cs[:3, :3] = Rotation.from_euler("xyz", [3.0, -5.0, 2.0], degrees=True).as_matrix()
+    T_cs[:3, 3] = [0.45, 0.2, -1.5]
+    for _ in range(20):
+        R0 = Rotation.random(random_state=rng).as_matrix()
+        r = rng.normal(0.0, 30.0, 3)
+        R = _aim_sensor(R0, r, T_cs)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        los = -(r + R @ T_cs[:3, 3])
+        np.testing.assert_allclose(R @ T_cs[:3, 2], los / np.linalg.norm(los), atol=1e-9)
+        # the turn is about an axis normal to the boresight (no roll about it added)
+        turn = Rotation.from_matrix(R @ R0.T).as_rotvec()
+        assert abs(turn @ (R0 @ T_cs[:3, 2])) < 0.05 * np.linalg.norm(turn) + 1e-9
+
 def test_propellant_and_delta_v_bookkeeping() -> None:
     w = _world("final_approach")
     m0 = w.mass.mass_kg

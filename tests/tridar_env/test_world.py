@@ -18,6 +18,26 @@ def _world(mission: str, **kw) -> World:
     return w
 
 
+def _world_and_pipeline(mission: str) -> tuple[World, object]:
+    from perception.pipeline import TriDAR
+
+    cfg = load_config(mission)
+    target = load_target(cfg.target.name)
+    w = World(cfg, target)
+    w.reset(np.random.default_rng(3))
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(0))
+    return w, tri
+
+
+def _start_filter_on_truth(w: World, tri: object) -> None:
+    """The pipeline's filter at the true relative state, carried from now by ``take_ego`` alone."""
+    s = w.sensor_truth()
+    tri.take_ego(w.t, w.sensor_ego())
+    tri.filter.initialize(w.t, s.T_sensor_target, np.eye(6) * 1e-8, velocity=s.velocity,
+                          omega=s.angular_velocity)
+
+
 @pytest.mark.parametrize(
     ("mission", "thrust"),
     [("final_approach", [0.5, -0.3, 2.0]), ("tumbling_target", [0.2, 0.1, -0.4])],
@@ -227,21 +247,12 @@ def test_the_pipeline_filter_predicts_the_hosts_manoeuvres_from_its_imu(mission:
     step's end describes the step just flown. Holding it over the next step instead (the old
     order) put the tumbling chaser's prediction 3 cm off after 1 s and 5 cm after 3 s."""
     from perception.geometry import pose_error
-    from perception.pipeline import TriDAR
 
-    cfg = load_config(mission)
-    target = load_target(cfg.target.name)
-    w = World(cfg, target)
-    w.reset(np.random.default_rng(3))
-    tri = TriDAR(cfg, target)
-    tri.reset(np.random.default_rng(0))
+    w, tri = _world_and_pipeline(mission)
     rng = np.random.default_rng(5)
     torque = (lambda: rng.uniform(-0.5, 0.5, 3)) if w.controlled_attitude else (lambda: None)
     w.step(np.zeros(3), torque())
-    s = w.sensor_truth()
-    tri.take_ego(w.t, w.sensor_ego())
-    tri.filter.initialize(w.t, s.T_sensor_target, np.eye(6) * 1e-8, velocity=s.velocity,
-                          omega=s.angular_velocity)
+    _start_filter_on_truth(w, tri)
     errors = []
     for _ in range(int(round(6.0 / w.dt))):
         w.step(rng.uniform(-10.0, 10.0, 3), torque())
@@ -261,21 +272,12 @@ def test_the_imus_acceleration_is_carried_in_the_axes_the_filter_predicts_in(mis
     back by the step's rotation. Used as it is read (the old way) the thrust was 1 deg off every
     step, a steady error the filter does not model: 12.9 mm after 6 s (measured; now 1.9 mm)."""
     from perception.geometry import pose_error
-    from perception.pipeline import TriDAR
 
-    cfg = load_config(mission)
-    target = load_target(cfg.target.name)
-    w = World(cfg, target)
-    w.reset(np.random.default_rng(3))
-    tri = TriDAR(cfg, target)
-    tri.reset(np.random.default_rng(0))
+    w, tri = _world_and_pipeline(mission)
     for _ in range(20):  # spin the chaser up
         w.step(np.zeros(3), np.array([0.3, 0.5, 0.0]))
     assert np.degrees(np.linalg.norm(w.chaser_angular_velocity_body)) > 4.0
-    s = w.sensor_truth()
-    tri.take_ego(w.t, w.sensor_ego())
-    tri.filter.initialize(w.t, s.T_sensor_target, np.eye(6) * 1e-8, velocity=s.velocity,
-                          omega=s.angular_velocity)
+    _start_filter_on_truth(w, tri)
     errors = []
     for _ in range(int(round(6.0 / w.dt))):
         w.step(np.array([6.0, -4.0, 3.0]), np.zeros(3))

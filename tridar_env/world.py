@@ -61,13 +61,9 @@ def _pose(R: FloatArray, t: FloatArray | None = None) -> FloatArray:
 
 
 def _aim_sensor(R_lvlh_chaser: FloatArray, r_chaser: FloatArray, T_chaser_sensor: FloatArray) -> FloatArray:
-    """The chaser attitude nearest ``R_lvlh_chaser`` whose sensor boresight (the sensor's +z)
-    points at the LVLH origin (the target's centre of mass), the chaser at ``r_chaser``.
-
-    The smallest turn that takes the boresight onto the line of sight; the line of sight starts
-    at the sensor, which the turn moves about the chaser's centre, so the turn is found again
-    from the moved sensor until it is nil (each pass shrinks it by about mount / range).
-    """
+    """The chaser attitude nearest ``R_lvlh_chaser`` whose sensor boresight (+z) points at the
+    target's centre of mass (LVLH origin), the chaser at ``r_chaser``: the smallest turn, found again
+    from the moved sensor (the turn moves it about the chaser's centre) until it is nil."""
     R = np.asarray(R_lvlh_chaser, dtype=np.float64)
     for _ in range(50):
         los = -(r_chaser + R @ T_chaser_sensor[:3, 3])

@@ -157,7 +157,7 @@ class TriDAR:
         self.rng = rng
         self.external_seed = None
         inertia = self.target.inertia if self.pc.target_rotation == "torque_free" else None
-        self.filter = PoseFilter(self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2,
+        self.filter = PoseFilter(*self.process_noise(),
                                  init_rate_sigma=math.radians(self.pc.initial_rate_sigma_deg_s),
                                  ref_point=self.target.T_target_port[:3, 3], inertia=inertia)
         self.ego: EgoMotion | None = None
@@ -196,6 +196,21 @@ class TriDAR:
             mt = self.model_target
             self._pah = mt.cached(key, lambda: PAHDatabase.build(mt, self.pc.pah))
         return self._pah
+
+    def process_noise(self) -> tuple[float, float]:
+        """The filter's white acceleration and angular-acceleration densities, squared
+        [(m/s^2)^2/Hz, (rad/s^2)^2/Hz]: the mission's ``process_noise_*``, and with ego-motion
+        aiding the chaser's IMU noise on top (``dynamics.chaser``). One reading a host step of
+        ``env.frame_period_s`` with white noise ``s`` moves the filter's velocity (rate) by
+        ``s dt`` a step, a random walk of density ``s^2 dt``; the filter that reads the IMU must
+        carry it, or a quiet density (a target in free fall, the chaser's thrust read by the
+        IMU) makes it trust a dead-reckoned pose the noisy IMU has already moved."""
+        qa, qw = self.pc.process_noise_accel**2, self.pc.process_noise_angacc**2
+        if self.pc.ego_motion:
+            ch, dt = self.cfg.dynamics.chaser, self.cfg.env.frame_period_s
+            qa += ch.accel_noise_m_s2**2 * dt
+            qw += math.radians(ch.gyro_noise_deg_s) ** 2 * dt
+        return qa, qw
 
     def prepare(self) -> None:
         """Build what search needs now rather than in the first search frame: the PAH database and

@@ -149,9 +149,10 @@ class SearchMode:
         tri.tracking.clear_rejects()
         tri.n_updates = 1
         tri.accepted_fitness = res.fitness
-        # PAH's answer may be a twin of the truth until the scans rule the twins out; a seed or
-        # the lost track's prediction already has (the track's continuity carries that on).
-        tri.twins.start(all_open=from_pah)
+        # PAH's answer may be a twin of the truth until the scans rule the twins out; a seed has
+        # (so has a lost track's prediction, as far as that track had: continuity carries on what
+        # it had ruled out, and no more).
+        tri.twins.start(all_open=from_pah, continues_lost=from_track is not None)
         tri.last_pose_t = t_ref
         tri.stats.acquisitions.append((tri.search_started, t))
         tri.search_started = None
@@ -159,4 +160,5 @@ class SearchMode:
         return FrameOutput(tri.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
                            lever_m=lever(cloud.points),
                            bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
-                           filt=tri.filter.copy(), n_updates=tri.n_updates)
+                           filt=tri.filter.copy(), n_updates=tri.n_updates,
+                           ambiguity_m=tri.twins.ambiguity_m)

@@ -261,6 +261,7 @@ class TrackingMode:
             if tri.filter.initialized:
                 sound = tri.accepted_fitness >= tri.pc.integrity.min_valid_fitness
                 tri.lost_track = tri.filter.copy() if sound else None
+                tri.twins.track_lost()
             tri.filter.reset()
             tri.n_updates = 0
             tri.search_started = t

@@ -65,12 +65,26 @@ class TwinMonitor:
         self.twins_open: set[int] | None = set()
         self.sym_votes = 0
         self.sym_candidate = -1
+        self.lost: tuple[set[int] | None, float] = (set(), 0.0)
 
-    def start(self, all_open: bool) -> None:
-        """A new track: all twins open (PAH's answer may be a twin of the truth), or none (a seed
-        or a lost track's prediction, whose continuity has ruled them out)."""
-        self.twins_open = None if all_open else set()
-        self.ambiguity_m = 0.0
+    def track_lost(self) -> None:
+        """The track was lost: keep the twins it had not ruled out (and their port offset) for a
+        reacquisition from its prediction."""
+        self.lost = (None if self.twins_open is None else set(self.twins_open), self.ambiguity_m)
+
+    def start(self, all_open: bool, continues_lost: bool = False) -> None:
+        """A new track: all twins open (PAH's answer may be a twin of the truth); those the lost
+        track had left open (``continues_lost``: a reacquisition from its prediction continues it,
+        twin and all: a PAH track lost before its twins were ruled out, reacquired from its
+        prediction, was published valid a half turn off, 0.26 m at the port under a 0.06 m
+        protection level); or none (a seed)."""
+        if all_open:
+            self.twins_open, self.ambiguity_m = None, 0.0
+        elif continues_lost:
+            twins, amb = self.lost
+            self.twins_open, self.ambiguity_m = (None if twins is None else set(twins)), amb
+        else:
+            self.twins_open, self.ambiguity_m = set(), 0.0
 
     def monitor(self, pts: FloatArray, cloud: PointCloud, res: RegistrationResult,
                 t_ref: float, icp_cfg: ICPConfig) -> None:

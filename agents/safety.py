@@ -377,20 +377,30 @@ class CollisionAvoidance:
         return float(np.hypot(p[0], p[1])) + bound <= self.lateral_max_m
 
     # ------------------------------------------------------------------ law
-    def accel(self, obs: npt.NDArray[np.floating], hold_m: float | None = None) -> FloatArray:
+    def accel(self, obs: npt.NDArray[np.floating], hold_m: float | None = None,
+              inertial: bool = False) -> FloatArray:
         """Body acceleration [m/s^2] of the current ``avoid`` or ``commit`` mode (before the
         thrust limit, which should scale the vector as a whole).
 
         Args:
             obs: the observation (for the gyro).
             hold_m: hold distance along the axis [m] (default ``hold_range_m``).
+            inertial: hold (or retreat) the reference point still in the inertial frame rather
+                than in the turning body frame: the speed loop works on the point's inertial
+                velocity relative to the chaser, with no rotating-frame terms (a chaser that has
+                stopped turning with the target; a body-frame hold would keep it circling at
+                whatever rate it is left with).
         """
         w = obs[_S["chaser_rate_body"]].astype(np.float64)
         x, x_dot = self.dr.state(w)
         # the rotating body frame's Coriolis and centripetal terms (a frame constant in LVLH turns
         # at n: its CW terms are left to the speed loop)
-        frame = np.zeros(3) if self.model is not None else (
-            -2.0 * np.cross(w, x_dot) - np.cross(w, np.cross(w, x)))
+        if inertial and self.model is None:
+            x_dot = x_dot + np.cross(w, x)
+            frame = np.zeros(3)
+        else:
+            frame = np.zeros(3) if self.model is not None else (
+                -2.0 * np.cross(w, x_dot) - np.cross(w, np.cross(w, x)))
         if self.mode == "commit":
             return frame
         g = self.g

@@ -65,10 +65,12 @@ Phases (:attr:`SyncController.phase`):
     near the boresight), and its thrust holds the dead-reckoned centre of mass fixed in the
     turning body frame (the centripetal ``-w x (w x x)`` and Coriolis ``-2 w x x'`` terms of that
     rate plus a speed loop): a synchronised chaser keeps turning about the target with it, on the
-    circle it was on. Along the line to the centre of mass it never closes in; when the loss
-    outlasts ``safety.hold_s`` (or at once inside ``safety.commit_range_m``) it backs away at
-    ``safety.v_retreat`` to the hold distance (the ``standoff_m`` hold point's, at least the
-    keep-out sphere). A degraded pose's depth along the docking axis corrects the dead
+    circle it was on, as long as that circle needs at most ``infeasible_fraction`` of the thrust;
+    beyond it the chaser stops turning and points at the dead-reckoned centre of mass, holding
+    inertially (:meth:`SyncController._safe_alpha`). Along the line to the centre of mass it
+    never closes in; when the loss outlasts ``safety.hold_s`` (or at once inside
+    ``safety.commit_range_m``) it backs away at ``safety.v_retreat`` to the hold distance (the
+    ``standoff_m`` hold point's, at least the keep-out sphere). A degraded pose's depth along the docking axis corrects the dead
     reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
     envelope's closing speed coasts into contact in the turning frame, its torque the target's
     own angular acceleration (Euler's equations run open loop from the last fix) so that the
@@ -215,6 +217,7 @@ class SyncController:
         self._target: tuple[FloatArray, FloatArray] | None = None
         # (phase, s, s_dot, dwell, metrics) before a hold that has not turned into a retreat
         self._paused: tuple[str, float, float, float, FloatArray | None] | None = None
+        self._stop_turning = False  # this hold or retreat points at the target (latched)
         self.safety.reset()
 
     # ------------------------------------------------------------------ helpers
@@ -280,10 +283,13 @@ class SyncController:
             self._w_rel_f = None
             if mode == "blind":
                 return loss_of_track_accel(obs, g.brake_gain), np.zeros(3)
-            alpha = self._committed_alpha() if mode == "commit" else np.zeros(3)
-            if mode != "commit":
+            if mode == "commit":
+                alpha = self._committed_alpha()
+            else:
                 self._target = None
-            return self.safety.accel(obs, self.hold_com_m), alpha
+                alpha = self._safe_alpha(obs, w)
+            return self.safety.accel(obs, self.hold_com_m, inertial=self._stop_turning), alpha
+        self._stop_turning = False
 
         alpha_t = self._port_alpha(w + w_rel, R_dp)
         dist = float(np.linalg.norm(p))
@@ -364,6 +370,25 @@ class SyncController:
         h_dot_des = -self._keep_out(_sat(g.lam * h, v_max), p, u, r_p)
         a_fb = g.kd * (h_dot - h_dot_des)
         return _allocate(a_ff, a_fb, a_lim), alpha
+
+    def _safe_alpha(self, obs: npt.NDArray[np.floating], w: FloatArray) -> FloatArray:
+        """Body angular acceleration [rad/s^2] of a hold or retreat (module docstring, ``safe``).
+
+        None while the circle the chaser's rate ``w`` draws about the dead-reckoned centre of mass
+        needs at most ``infeasible_fraction`` of the thrust: the synchronised spin goes on. Beyond
+        that the circle cannot be held, and a chaser still turning with the target flies off it
+        (a flash track lost 7 m out at 5.9 deg/s: full thrust in a turning frame, out of bounds at
+        120 m two minutes later), so from then until a healthy pose it stops turning with the
+        target: its docking axis points at the dead-reckoned centre of mass, its spin about that
+        line stopped, and the hold is flown in the inertial frame (``CollisionAvoidance.accel``'s
+        ``inertial``), with the sensor on the target for the reacquisition.
+        """
+        x, x_dot = self.safety.dr.state(w)
+        a_lim = self.max_thrust / self._mass(obs)
+        if not self._stop_turning and _centripetal(w, x) <= self.g.infeasible_fraction * a_lim:
+            return np.zeros(3)
+        self._stop_turning = True
+        return self._point(x - self.d, x_dot, w, -w)
 
     def _committed_alpha(self) -> FloatArray:
         """Body angular acceleration [rad/s^2] that keeps a committed chaser turning with the

@@ -70,8 +70,8 @@ Phases (:attr:`SyncController.phase`):
     inertially (:meth:`SyncController._safe_alpha`). Along the line to the centre of mass it
     never closes in; when the loss outlasts ``safety.hold_s`` (or at once inside
     ``safety.commit_range_m``) it backs away at ``safety.v_retreat`` to the hold distance (the
-    ``standoff_m`` hold point's, at least the keep-out sphere). A degraded pose's depth along the docking axis corrects the dead
-    reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
+    ``standoff_m`` hold point's, at least the keep-out sphere). A degraded pose's depth along the
+    docking axis corrects the dead reckoning. A healthy pose lost in the last ``safety.commit_range_m`` on the axis at the
     envelope's closing speed coasts into contact in the turning frame, its torque the target's
     own angular acceleration (Euler's equations run open loop from the last fix) so that the
     relative rate stays matched (a degraded one there backs away). Before any pose (acquisition)
@@ -386,7 +386,7 @@ class SyncController:
     def _safe_alpha(self, obs: npt.NDArray[np.floating], w: FloatArray) -> FloatArray:
         """Body angular acceleration [rad/s^2] of a hold or retreat (module docstring, ``safe``).
 
-        None while the circle the chaser's rate ``w`` draws about the dead-reckoned centre of mass
+        Zero while the circle the chaser's rate ``w`` draws about the dead-reckoned centre of mass
         needs at most ``infeasible_fraction`` of the thrust: the synchronised spin goes on. Beyond
         that the circle cannot be held, and a chaser still turning with the target flies off it
         (a flash track lost 7 m out at 5.9 deg/s: full thrust in a turning frame, out of bounds at

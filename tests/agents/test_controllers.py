@@ -290,46 +290,10 @@ def test_sync_keeps_turning_with_the_target_after_losing_the_pose() -> None:
     np.testing.assert_allclose(x, r_com, atol=1e-3)  # the geometry it keeps
 
 
-def test_sync_stops_turning_where_its_circle_after_a_loss_needs_more_than_the_thrust() -> None:
-    """A pose lost 8 m out with the chaser turning at 5 deg/s: the circle about the dead-reckoned
-    centre of mass (8.9 m) needs 0.068 m/s^2 of the 0.059 the thrust gives, so the chaser stops
-    turning with the target instead (a flash track lost like this flew full thrust in its turning
-    frame out of bounds): its rate decays, its docking axis comes round onto the dead-reckoned
-    centre of mass, and the hold's thrust falls to the speed loop's (no centripetal term left)."""
-    cfg = load_config("tumbling_target", env__perception="truth")
-    ctrl = SyncController(cfg)
-    w = np.radians([5.0, 0.0, 0.0])
-    synced = _synced_obs(ctrl, w, np.zeros(3))
-    synced[S["port_position_dock"]] = [0.0, 0.0, 8.0]
-    synced[S["port_velocity_dock"]] = np.cross(w, [0.0, 0.0, 8.0]) * -1.0  # inertially still
-    ctrl(synced)
-    lost = _bearing_obs(0.0, 0.0, 0.0)
-    lost[S["valid"]] = 0.0  # no range either: dead reckoning alone
-    first = None
-    for _ in range(round(90.0 / ctrl.dt)):
-        lost[S["chaser_rate_body"]] = w
-        act = ctrl(lost).astype(np.float64)
-        assert ctrl.phase == "safe" and ctrl.safety.mode == "avoid"
-        alpha = act[3:] * cfg.dynamics.chaser.max_torque_nm / ctrl.inertia
-        if first is None:
-            first = alpha
-        w = w + alpha * ctrl.dt
-    assert first @ np.radians([5.0, 0.0, 0.0]) < 0.0  # it brakes the turn at once
-    assert np.degrees(np.linalg.norm(w)) < 0.2
-    x, x_dot = ctrl.safety.dr.state(w)
-    assert np.degrees(np.arccos(x[2] / np.linalg.norm(x))) < 3.0  # docking axis on the target
-    assert np.linalg.norm(x) == pytest.approx(8.9, abs=1.0)  # held, not flown off
-    a = act[:3] * cfg.dynamics.chaser.max_thrust_n / (cfg.dynamics.chaser.dry_mass_kg
-                                                         + cfg.dynamics.chaser.propellant_kg)
-    assert np.linalg.norm(a) < 0.01
-
-
-def test_sync_inertial_hold_is_aided_by_the_returns_centroid_and_range_rate() -> None:
-    """After the chaser stopped turning (above), search frames still give a bearing, a range and
-    a range rate: the dead-reckoned centre of mass follows the returns' centroid, and an opening
-    range rate the dead reckoning did not know about is braked (thrust toward the target)."""
-    from agents.bearing_guidance import returns_centroid
-
+def _lost_turning_8_m_out(seconds: float):
+    """Synchronised 8 m out on the port axis at 5 deg/s (the port inertially still), then the
+    pose (and bearing and range) lost for ``seconds``, the chaser's rate integrated from the
+    commanded torque: ``(config, controller, final rate, actions)``."""
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)
     w = np.radians([5.0, 0.0, 0.0])
@@ -339,10 +303,40 @@ def test_sync_inertial_hold_is_aided_by_the_returns_centroid_and_range_rate() ->
     ctrl(synced)
     lost = _bearing_obs(0.0, 0.0, 0.0)
     lost[S["valid"]] = 0.0
-    for _ in range(round(30.0 / ctrl.dt)):  # stop turning, dead reckoning alone
+    acts = []
+    for _ in range(round(seconds / ctrl.dt)):
         lost[S["chaser_rate_body"]] = w
-        act = ctrl(lost).astype(np.float64)
-        w = w + act[3:] * cfg.dynamics.chaser.max_torque_nm / ctrl.inertia * ctrl.dt
+        acts.append(ctrl(lost).astype(np.float64))
+        assert ctrl.phase == "safe" and ctrl.safety.mode == "avoid"
+        w = w + acts[-1][3:] * cfg.dynamics.chaser.max_torque_nm / ctrl.inertia * ctrl.dt
+    return cfg, ctrl, w, acts
+
+
+def test_sync_stops_turning_where_its_circle_after_a_loss_needs_more_than_the_thrust() -> None:
+    """A pose lost 8 m out with the chaser turning at 5 deg/s: the circle about the dead-reckoned
+    centre of mass (8.9 m) needs 0.068 m/s^2 of the 0.059 the thrust gives, so the chaser stops
+    turning with the target instead (a flash track lost like this flew full thrust in its turning
+    frame out of bounds): its rate decays, its docking axis comes round onto the dead-reckoned
+    centre of mass, and the hold's thrust falls to the speed loop's (no centripetal term left)."""
+    cfg, ctrl, w, acts = _lost_turning_8_m_out(90.0)
+    alpha0 = acts[0][3:] * cfg.dynamics.chaser.max_torque_nm / ctrl.inertia
+    assert alpha0 @ np.radians([5.0, 0.0, 0.0]) < 0.0  # it brakes the turn at once
+    assert np.degrees(np.linalg.norm(w)) < 0.2
+    x, _ = ctrl.safety.dr.state(w)
+    assert np.degrees(np.arccos(x[2] / np.linalg.norm(x))) < 3.0  # docking axis on the target
+    assert np.linalg.norm(x) == pytest.approx(8.9, abs=1.0)  # held, not flown off
+    a = acts[-1][:3] * cfg.dynamics.chaser.max_thrust_n / (cfg.dynamics.chaser.dry_mass_kg
+                                                           + cfg.dynamics.chaser.propellant_kg)
+    assert np.linalg.norm(a) < 0.01
+
+
+def test_sync_inertial_hold_is_aided_by_the_returns_centroid_and_range_rate() -> None:
+    """After the chaser stopped turning (above), search frames still give a bearing, a range and
+    a range rate: the dead-reckoned centre of mass follows the returns' centroid, and an opening
+    range rate the dead reckoning did not know about is braked (thrust toward the target)."""
+    from agents.bearing_guidance import returns_centroid
+
+    cfg, ctrl, w, _ = _lost_turning_8_m_out(30.0)  # stopped turning, dead reckoning alone
     assert ctrl._stop_turning and np.degrees(np.linalg.norm(w)) < 0.2
     seen = _bearing_obs(0.2, 0.05, -0.03)  # 12 m off along a bearing, opening at 0.2 m/s
     seen[S["range"]] = 12.0
@@ -354,7 +348,7 @@ def test_sync_inertial_hold_is_aided_by_the_returns_centroid_and_range_rate() ->
         act = ctrl(seen).astype(np.float64)
         toward.append(float(act[:3] @ u))
         w = w + act[3:] * cfg.dynamics.chaser.max_torque_nm / ctrl.inertia * ctrl.dt
-    x, x_dot = ctrl.safety.dr.state(w)
+    x, _ = ctrl.safety.dr.state(w)
     # a fixed centroid against an opening range rate and a dead reckoning that thrusts: the
     # estimate comes most of the way to the centroid (it was 2 m off)
     assert np.linalg.norm(x0 - c) > 1.5

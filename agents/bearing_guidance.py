@@ -54,7 +54,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from perception.config import MissionConfig
+from perception.config import ChaserConfig, MissionConfig
 from tridar_env.dynamics import cw_acceleration
 from tridar_env.env import observation_slices
 from tridar_env.schedule import decision_frames
@@ -94,6 +94,13 @@ def line_of_sight(bearing: npt.ArrayLike) -> FloatArray:
     (+z boresight, +x right, +y down; elevation up)."""
     az, el = (float(b) for b in np.asarray(bearing, dtype=np.float64).reshape(2))
     return np.array([np.sin(az) * np.cos(el), -np.sin(el), np.cos(az) * np.cos(el)])
+
+
+def sensor_mount(ch: ChaserConfig) -> tuple[FloatArray, FloatArray]:
+    """``(R_cs (3, 3), t_cs (3,))``: the sensor's attitude and position [m] in the chaser body, from
+    the chaser config ``ch`` (``sensor_rpy_deg``, ``sensor_position_m``)."""
+    return (Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix(),
+            np.asarray(ch.sensor_position_m, dtype=np.float64))
 
 
 def returns_centroid(obs: npt.NDArray[np.floating], R_cs: FloatArray, t_cs: FloatArray
@@ -151,8 +158,7 @@ class BearingGuidance:
         self.cw = None if cw is None else (float(cw[0]), np.asarray(cw[1], dtype=np.float64))
         self.lever = np.zeros(3) if lever is None else np.asarray(lever, dtype=np.float64).reshape(3)
         self.dock = np.asarray(ch.dock_position_m, dtype=np.float64)
-        self.R_cs = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
-        self.t_cs = np.asarray(ch.sensor_position_m, dtype=np.float64)
+        self.R_cs, self.t_cs = sensor_mount(ch)
         self.dry, self.prop0, self.max_thrust = ch.dry_mass_kg, ch.propellant_kg, ch.max_thrust_n
         self.six_dof = ch.attitude == "controlled"
         q = self.g.accel_noise**2

@@ -60,7 +60,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from agents.bearing_guidance import returns_centroid
+from agents.bearing_guidance import returns_centroid, sensor_mount
 from agents.lqr import saturate
 from perception.config import MissionConfig
 from tridar_env.dynamics import cw_acceleration, cw_stm, mean_motion
@@ -136,8 +136,7 @@ class FlyAroundController:
         self.axis = self.R_lvlh_port[:, 2]
         self.dock = np.asarray(ch.dock_position_m, dtype=np.float64)
         self.dry, self.prop0, self.max_thrust = ch.dry_mass_kg, ch.propellant_kg, ch.max_thrust_n
-        self.R_cs = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
-        self.t_cs = np.asarray(ch.sensor_position_m, dtype=np.float64)
+        self.R_cs, self.t_cs = sensor_mount(ch)
         self.reset()
 
     def reset(self) -> None:

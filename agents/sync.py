@@ -89,9 +89,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
-from agents.bearing_guidance import returns_centroid
+from agents.bearing_guidance import returns_centroid, sensor_mount
 from agents.lqr import loss_of_track_accel, saturate
 from agents.safety import CollisionAvoidance, SafetyGains
 from agents.safety import rotvec_matrix
@@ -198,8 +197,7 @@ class SyncController:
         self.keep_out_m = target.radius + ch.hull_radius_m + self.g.keep_out_margin_m
         self.hull = ch.hull_radius_m
         # the sensor's mount in the body (the returns' centroid from the bearing and range)
-        self.R_cs = Rotation.from_euler("xyz", ch.sensor_rpy_deg, degrees=True).as_matrix()
-        self.t_cs = np.asarray(ch.sensor_position_m, dtype=np.float64)
+        self.R_cs, self.t_cs = sensor_mount(ch)
         self._cone_tan = float(np.tan(np.radians(self.g.approach_cone_deg)))
         # hold distance between the centres of mass: the standoff hold point's, outside keep-out
         self.hold_com_m = max(

@@ -27,10 +27,11 @@ from perception.pipeline.integrity import (
     turn_about,
 )
 from perception.pipeline.state import INVALID_VARIANCE, Mode, StateVector, Validity
+from perception.sensing.pointcloud import Subsystem
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FrameOutput", "Publisher", "lever"]
+__all__ = ["FrameOutput", "Publisher", "lever", "tof_share"]
 
 
 @dataclass
@@ -53,6 +54,12 @@ class FrameOutput:
     n_updates: int = 0
     ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
     lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
+    tof_share: float = 0.0  # fraction of the frame's points the time-of-flight ranged
+
+
+def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
+    """Fraction of a frame's points (``PointCloud.subsystem``) ranged by the time of flight."""
+    return float(np.mean(subsystem == Subsystem.TOF)) if len(subsystem) else 0.0
 
 
 def lever(points: FloatArray) -> float:
@@ -69,12 +76,17 @@ class Publisher:
         pc: the pipeline configuration (its ``integrity`` section).
         r_port: (3,) the docking port's position in the target frame [m].
         max_pose_age: age [s] beyond which a measurement is no longer published as valid.
+        tof_bias_m: the time of flight's configured range bias [m] (``sensor.tof.bias_m``): a
+            frame whose points it ranged is off along the line of sight by up to its share of
+            it, the same every frame (the filter cannot average it away).
     """
 
-    def __init__(self, pc: PipelineConfig, r_port: FloatArray, max_pose_age: float) -> None:
+    def __init__(self, pc: PipelineConfig, r_port: FloatArray, max_pose_age: float,
+                 tof_bias_m: float = 0.0) -> None:
         self.pc = pc
         self.r_port = r_port
         self.max_pose_age = max_pose_age
+        self.tof_bias_m = abs(float(tof_bias_m))
         self.reset()
 
     def reset(self) -> None:
@@ -139,23 +151,34 @@ class Publisher:
             kw.update(velocity=fv, angular_velocity=fw, range_rate=float(fp @ fv / max(rng_m, 1e-9)))
             valid_kw["range_rate"] = True
             blocks += [slice(3, 6), slice(9, 12)]
-        # The registrations' correlated error does not average down: published on top.
+        # The registrations' correlated error does not average down. Two covariances, as ARAIM
+        # keeps them: the published one adds the typical correlated error (accuracy_bias_*; along
+        # the line of sight at least the time of flight's range bias: the state vector's NEES
+        # stays near 3), the protection level the worst shapes' allowance (bias_*, along the line
+        # of sight at least that range bias), on position and, over the scan's lever arm, on
+        # attitude as a turn about the port (the origin moves with it; the port's bound does
+        # not). bias_* >= accuracy_bias_* (config), so the bound covers the published covariance.
         ig = self.pc.integrity
         r_port = self.r_port
-        port_rng = float(np.linalg.norm(fp + fR @ r_port))
-        fP = fP.copy()
-        # The correlated displacement b of the scanned surface turns the registration by up
-        # to b over the scan's lever arm: published on the attitude as the position's is,
-        # as a turn about the port (the origin moves with it; the port's bound does not).
+        port = fp + fR @ r_port
+        port_rng = float(np.linalg.norm(port))
+        los = np.outer(port, port) / max(port_rng, 1e-9) ** 2
+        acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * port_rng)
         bias = max(ig.bias_m, ig.bias_rad * port_rng)
-        fP.flat[0:36:13] += bias**2
-        fP = turn_about(fP, fR, r_port, (bias / max(out.lever_m, 1e-3)) ** 2)
+        rb = out.tof_share * self.tof_bias_m
+        P_acc = fP.copy()
+        P_acc.flat[0:36:13] += acc**2
+        P_acc[0:3, 0:3] += max(rb**2 - acc**2, 0.0) * los
+        P_int = fP.copy()
+        P_int.flat[0:36:13] += bias**2
+        P_int[0:3, 0:3] += max(rb**2 - bias**2, 0.0) * los
+        P_int = turn_about(P_int, fR, r_port, (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:
             for b in blocks:
-                cov[a, b] = fP[a, b]
+                cov[a, b] = P_acc[a, b]
         # Integrity: the port's error bound from the filter's full pose covariance (the
         # unobservable directions of the registrations grow there, not in the floors).
-        pl = protection_level(port_covariance(fP, fR, r_port), integrity_factor(ig.risk))
+        pl = protection_level(port_covariance(P_int, fR, r_port), integrity_factor(ig.risk))
         pl += out.ambiguity_m  # the port may be where a twin the scan allows puts it
         al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
         kw.update(protection_level=pl, alert_limit=al)

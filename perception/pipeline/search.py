@@ -17,7 +17,7 @@ import numpy.typing as npt
 from perception.estimation.registration import RegistrationResult, icp
 from perception.numeric import median
 from perception.pipeline.modes import FrameVerdict
-from perception.pipeline.publish import FrameOutput, lever
+from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.pipeline.tracking import MIN_REGISTRATION_POINTS, measurement_cov
 from perception.sensing.pointcloud import PointCloud
@@ -158,7 +158,7 @@ class SearchMode:
         tri.search_started = None
         tri.logic.go(t, Mode.TRACKING, f"acquired (fitness {res.fitness:.2f})")
         return FrameOutput(tri.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
-                           lever_m=lever(cloud.points),
+                           lever_m=lever(cloud.points), tof_share=tof_share(cloud.subsystem),
                            bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
                            filt=tri.filter.copy(), n_updates=tri.n_updates,
                            ambiguity_m=tri.twins.ambiguity_m)

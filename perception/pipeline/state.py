@@ -19,7 +19,10 @@ False). Without a pose both are 0.
 Fields that a mode cannot measure are flagged in ``valid`` and hold zeros: never stale or made-up
 numbers, and never NaN. ``covariance`` is ``(12, 12)`` over ``[position, velocity, attitude
 (small-angle rotation vector, sensor frame), angular_velocity]``; the blocks of invalid fields hold
-a large variance (``INVALID_VARIANCE``).
+a large variance (``INVALID_VARIANCE``). It is the accuracy covariance (what the error typically
+is: its NEES is about 3, ``integrity.accuracy_bias_*``); the protection level is computed from the
+integrity covariance, which adds the larger correlated-error allowance of the worst shapes
+(``integrity.bias_*``), so it always bounds at least what the covariance says.
 """
 
 from __future__ import annotations

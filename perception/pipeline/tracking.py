@@ -20,7 +20,7 @@ from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import cross_rows, pose_error, skew
 from perception.numeric import median
 from perception.pipeline.modes import FrameVerdict
-from perception.pipeline.publish import FrameOutput, lever
+from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.sensing.pointcloud import PointCloud
 from perception.sensing.scan_patterns import angles_to_directions
@@ -191,7 +191,8 @@ class TrackingMode:
         self.after_loss(lost, t)
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
-                          n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts))
+                          n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
+                          tof_share=tof_share(cloud.subsystem))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         out.bearing_source = bfix.bearing_source

@@ -147,7 +147,8 @@ class TriDAR:
         self.tracking = TrackingMode(self)
         self.twins = TwinMonitor(self)
         self.slides = SlideMonitor(self)
-        self.publisher = Publisher(self.pc, self.target.T_target_port[:3, 3], self.max_pose_age)
+        self.publisher = Publisher(self.pc, self.target.T_target_port[:3, 3], self.max_pose_age,
+                                   tof_bias_m=config.sensor.tof.bias_m)
         self._handlers = {Mode.BEARING: self.bearing, Mode.SEARCH: self.search, Mode.TRACKING: self.tracking}
         self.reset(self.rng)
 

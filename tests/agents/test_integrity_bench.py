@@ -9,7 +9,9 @@ import pytest
 
 from agents.benchmarks.integrity import (
     RunRecord,
+    autocorrelation_time,
     by_range,
+    effective_count,
     fly,
     library_case,
     make_case_env,
@@ -78,6 +80,22 @@ def test_nees_band_matches_chi_square_tables():
     assert all(math.isnan(v) for v in nees_band(0))
 
 
+def test_autocorrelation_time_of_white_noise_and_of_an_ar1_series():
+    """White noise: 1. AR(1) with coefficient phi: (1 + phi) / (1 - phi) (19 at phi 0.9), so
+    100,000 frames of it count as ~5,300 independent ones."""
+    rng = np.random.default_rng(3)
+    assert autocorrelation_time(rng.standard_normal(100_000)) == pytest.approx(1.0, abs=0.05)
+    phi, n = 0.9, 100_000
+    e = rng.standard_normal(n)
+    x = np.empty(n)
+    x[0] = e[0]
+    for k in range(1, n):
+        x[k] = phi * x[k - 1] + e[k]
+    assert autocorrelation_time(x) == pytest.approx(19.0, rel=0.1)
+    assert effective_count([x, np.full(3, np.nan)]) == pytest.approx(n / 19.0, rel=0.1)
+    assert autocorrelation_time(np.ones(50)) == 1.0  # constant: nothing to correlate
+
+
 def test_nees_of_a_known_error():
     assert nees(np.array([1.0, 2.0, 2.0]), np.diag([1.0, 4.0, 4.0])) == pytest.approx(3.0)
     assert math.isnan(nees(np.ones(3), np.diag([1.0, 1.0, 0.0])))  # nothing to normalise by
@@ -98,7 +116,7 @@ def test_summary_counts_hmi_mi_and_nees_by_hand():
     assert row["max_err_valid_m"] == pytest.approx(0.2)
     assert row["max_err_m"] == pytest.approx(0.2)
     assert row["nees_pos"] == pytest.approx(3.0)  # mean of 3, 1, 5 (the NaN is left out)
-    lo, hi = nees_band(3)
+    lo, hi = nees_band(3)  # too short a run for an autocorrelation: each frame counts once
     assert (row["nees_pos_band_lo"], row["nees_pos_band_hi"]) == (lo, hi)
     assert row["wall_s"] == 2.0
 

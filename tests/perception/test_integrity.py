@@ -339,3 +339,80 @@ def test_time_of_flight_tracking_of_a_generated_assembly_is_not_held_off_by_its_
 def test_stock_tracking_of_other_generated_assemblies_comes_back_from_an_in_plane_push(shape_seed: int) -> None:
     hmi, late = _hmi_from_a_pushed_start(generate_target("assembly", shape_seed), 9.0, 0.06)
     assert hmi == 0 and late < 0.03
+
+
+def test_published_covariance_carries_the_accuracy_allowance_and_the_bound_the_integrity_one() -> None:
+    """Two covariances, as ARAIM keeps them: ``accuracy_bias_*`` goes into the published
+    covariance (its NEES), ``bias_*`` into the protection level only. Each knob moves its own
+    output by exactly its variance and leaves the other, and the poses, bitwise alone."""
+    model = generate_target("assembly", 7)
+    r = model.T_target_port[:3, 3]
+
+    def run(acc: float, bias: float):  # type: ignore[no-untyped-def]
+        _, _, svs = _track_still(model, 4.0, 20, pipeline__integrity__accuracy_bias_m=acc,
+                                 pipeline__integrity__accuracy_bias_rad=0.0,
+                                 pipeline__integrity__bias_m=bias, pipeline__integrity__bias_rad=0.0,
+                                 pipeline__integrity__ambiguity_check_period_s=None)
+        return svs
+
+    base, more_acc, more_bias = run(0.001, 0.005), run(0.002, 0.005), run(0.001, 0.02)
+    assert len(base) >= 10
+    for a, b, c in zip(base, more_acc, more_bias, strict=True):
+        assert np.array_equal(a.position, b.position) and np.array_equal(a.position, c.position)
+        # accuracy: + (2 mm)^2 - (1 mm)^2 on each position axis, nothing else
+        d = b.covariance - a.covariance
+        np.testing.assert_allclose(d[0:3, 0:3], 3e-6 * np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(np.delete(np.delete(d, range(3), 0), range(3), 1), 0.0, atol=1e-15)
+        assert b.protection_level == a.protection_level
+        # integrity: the port's largest variance grows by exactly (20 mm)^2 - (5 mm)^2 (the turn
+        # about the port leaves the port alone); the published covariance is untouched
+        assert np.array_equal(c.covariance, a.covariance)
+        k = integrity_factor(1e-5)
+        assert (c.protection_level / k) ** 2 - (a.protection_level / k) ** 2 == pytest.approx(
+            0.02**2 - 0.005**2, rel=1e-6)
+        # and the bound always covers the published covariance at the risk
+        R = a.T_sensor_target[:3, :3]
+        assert a.protection_level >= protection_level(port_covariance(a.covariance, R, r),
+                                                      integrity_factor(1e-5))
+
+
+def test_an_accuracy_allowance_beyond_the_integrity_one_is_refused() -> None:
+    with pytest.raises(ValueError, match="accuracy_bias_m=0.01 exceeds bias_m=0.005"):
+        load_config("final_approach", pipeline__integrity__accuracy_bias_m=0.01)
+
+
+def test_the_time_of_flight_range_bias_is_published_along_the_line_of_sight() -> None:
+    """At 12 m the time of flight ranges the scan; its configured range bias shifts every frame
+    the same way along the line of sight, which no filter averages away. The published covariance
+    carries it there (share of TOF points x bias, squared, in place of the smaller generic
+    allowance) and nowhere else, and the protection level still bounds the published covariance
+    when the bias exceeds the integrity allowance."""
+    from perception.pipeline.state import TruthScene
+
+    model = generate_target("assembly", 7)
+    r = model.T_target_port[:3, 3]
+    cfg = load_config("final_approach", pipeline__use_corridor=False,
+                      pipeline__integrity__ambiguity_check_period_s=None)
+    runs = []
+    for bias in (0.0, 0.03):
+        tri = TriDAR(cfg, model)
+        tri.publisher.tof_bias_m = bias  # the sensor's own bias (5 mm) is the same in both runs
+        tri.reset(np.random.default_rng(1))
+        T0 = approach_pose(cfg, model, 12.0)
+        tri.seed_pose(T0, 0.0)
+        runs.append([sv for sv in (tri.step(TruthScene(T0, 0.2 * k), 0.2 * k) for k in range(15))
+                     if sv.valid.position])
+    assert len(runs[0]) >= 5
+    k = integrity_factor(cfg.pipeline.integrity.risk)
+    for a, b in zip(*runs, strict=True):
+        assert np.array_equal(a.position, b.position)
+        port = b.T_sensor_target[:3, :3] @ r + b.T_sensor_target[:3, 3]
+        u = port / np.linalg.norm(port)
+        d = b.covariance - a.covariance
+        var = float(u @ d[0:3, 0:3] @ u)
+        acc = max(cfg.pipeline.integrity.accuracy_bias_m, cfg.pipeline.integrity.accuracy_bias_rad * 12.0)
+        assert 0.8 * 0.03**2 - acc**2 < var <= 0.03**2 - acc**2 + 1e-9  # mostly TOF-ranged at 12 m
+        np.testing.assert_allclose(d[0:3, 0:3], var * np.outer(u, u), atol=1e-12)
+        assert np.count_nonzero(d[3:, :]) == 0 and np.count_nonzero(d[:, 3:]) == 0
+        assert b.protection_level >= protection_level(
+            port_covariance(b.covariance, b.T_sensor_target[:3, :3], r), k)

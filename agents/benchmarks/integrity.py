@@ -351,13 +351,15 @@ def summarise(label: str, records: Sequence[RunRecord], wall_s: float | None = N
 
 
 def by_range(records: Sequence[RunRecord]) -> list[dict[str, Any]]:
-    """Frames, degraded fraction, HMI, MI and the largest valid port error per range bin
-    (:data:`RANGE_BINS_M`, true sensor-to-port range) over all the records' pose frames."""
+    """Frames, degraded fraction, HMI, MI, the largest valid port error, the median PL and the
+    mean NEES (position, attitude) per range bin (:data:`RANGE_BINS_M`, true sensor-to-port
+    range) over all the records' pose frames."""
     if not records:
         return []
     cat = (lambda k: np.concatenate([getattr(r, k) for r in records]))
     rng, err, pl = cat("range_m"), cat("port_err_m"), cat("pl_m")
     deg = cat("degraded").astype(bool)
+    n_p, n_a = cat("nees_pos"), cat("nees_att")
     mis = err > pl + ERROR_SLACK_M
     out = []
     for lo, hi in RANGE_BINS_M:
@@ -374,6 +376,8 @@ def by_range(records: Sequence[RunRecord]) -> list[dict[str, Any]]:
             "MI": int((mis & m).sum()),
             "max err valid [m]": float(err[ok].max()) if ok.any() else math.nan,
             "median PL [m]": float(np.median(pl[m])),
+            "NEES pos": _finite_mean(n_p[m])[0],
+            "NEES att": _finite_mean(n_a[m])[0],
         })
     return out
 

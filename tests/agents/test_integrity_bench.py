@@ -131,7 +131,8 @@ def test_new_folder_never_reuses_an_existing_one(tmp_path):
 
 def test_by_range_bins_frames_by_true_range():
     rec = _record("docked", err=[0.01, 0.2, 0.05, 0.001], pl=[0.02, 0.1, 0.01, 0.01],
-                  degraded=[False, False, True, False], nees_pos=[1.0, 1.0, 1.0, 1.0])
+                  degraded=[False, False, True, False], nees_pos=[1.0, 2.0, 4.0, np.nan],
+                  nees_att=[0.5, 6.0, 3.0, 1.0])
     rec.range_m = np.array([25.0, 7.0, 3.0, 1.0])
     rows = {r["range [m]"]: r for r in by_range([rec])}
     assert set(rows) == {"0-2", "2-5", "5-10", "> 20"}
@@ -139,3 +140,5 @@ def test_by_range_bins_frames_by_true_range():
     assert rows["2-5"]["HMI"] == 0 and rows["2-5"]["MI"] == 1 and rows["2-5"]["degraded"] == 1.0
     assert math.isnan(rows["2-5"]["max err valid [m]"])
     assert sum(r["frames"] for r in rows.values()) == 4
+    assert rows["5-10"]["NEES pos"] == 2.0 and rows["2-5"]["NEES att"] == 3.0
+    assert math.isnan(rows["0-2"]["NEES pos"]) and rows["0-2"]["NEES att"] == 1.0

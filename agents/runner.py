@@ -179,9 +179,12 @@ def open_client(
             client.close()
         return
     n = workers or os.cpu_count() or 1
+    # Workers' logs are silenced below CRITICAL: a run's own failure comes back as its row, and
+    # closing the cluster under load (SIGTERM, Ctrl-C) made a worker whose heartbeat met the
+    # closed scheduler print a traceback (ERROR) after the one-line exit message.
     cluster = LocalCluster(
         n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-        silence_logs=logging.ERROR,
+        silence_logs=logging.CRITICAL,
     )
     client = Client(cluster)
     try:

@@ -58,9 +58,10 @@ NEES_DOF = 3
 RANGE_BINS_M = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, math.inf))
 
 __all__ = [
-    "LIBRARY_TARGETS", "RANGE_BINS_M", "SHAPE_SEED", "RunRecord", "TargetCase", "autocorrelation_time",
-    "by_range", "display_row", "effective_count", "file_case", "fly", "generated_case", "library_case", "make_case_env", "nees",
-    "nees_band", "new_folder", "plot_error_vs_pl", "summarise", "wilson_interval", "write_rows",
+    "LIBRARY_TARGETS", "RANGE_BINS_M", "SHAPE_SEED", "RunRecord", "TargetCase",
+    "autocorrelation_time", "by_range", "display_row", "effective_count", "file_case", "fly",
+    "generated_case", "library_case", "make_case_env", "nees", "nees_band", "new_folder",
+    "plot_error_vs_pl", "summarise", "wilson_interval", "write_rows",
 ]
 
 

@@ -62,6 +62,15 @@ def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
     return float(np.mean(subsystem == Subsystem.TOF)) if len(subsystem) else 0.0
 
 
+def _with_bias(P: FloatArray, sigma: float, range_bias: float, los: FloatArray) -> FloatArray:
+    """A copy of the (12, 12) ``P`` with a correlated position error of ``sigma`` [m] per axis,
+    at least ``range_bias`` [m] along the line of sight (``los``: (3, 3) projector onto it)."""
+    Q = P.copy()
+    Q.flat[0:36:13] += sigma**2
+    Q[0:3, 0:3] += max(range_bias**2 - sigma**2, 0.0) * los
+    return Q
+
+
 def lever(points: FloatArray) -> float:
     """RMS distance [m] of ``points`` (N, 3) from their centroid (inf for none)."""
     if len(points) == 0:
@@ -166,13 +175,9 @@ class Publisher:
         acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * port_rng)
         bias = max(ig.bias_m, ig.bias_rad * port_rng)
         rb = out.tof_share * self.tof_bias_m
-        P_acc = fP.copy()
-        P_acc.flat[0:36:13] += acc**2
-        P_acc[0:3, 0:3] += max(rb**2 - acc**2, 0.0) * los
-        P_int = fP.copy()
-        P_int.flat[0:36:13] += bias**2
-        P_int[0:3, 0:3] += max(rb**2 - bias**2, 0.0) * los
-        P_int = turn_about(P_int, fR, r_port, (bias / max(out.lever_m, 1e-3)) ** 2)
+        P_acc = _with_bias(fP, acc, rb, los)
+        P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
+                           (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:
             for b in blocks:
                 cov[a, b] = P_acc[a, b]

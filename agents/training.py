@@ -14,9 +14,11 @@ Intended workflow (the reason for the three perception modes):
 
 A training run writes, into its folder: ``model.zip`` (SB3), ``vecnormalize.npz`` (observation and
 return statistics as plain arrays, so that evaluation never unpickles them), ``training.yaml`` (the
-resolved config), ``checkpoints/`` (model + statistics every ``checkpoint_every_steps``) and
-``tb/`` (TensorBoard logs). The folder carries the marker of :mod:`agents.outputs`: ``--force``
-replaces those files only, and only in a folder ``train`` created.
+resolved config), ``checkpoints/`` (model + statistics every ``checkpoint_every_steps``),
+``learning_curve.csv`` / ``.png`` (how the training episodes ended, per rollout, against steps
+and wall time: :mod:`agents.learning_curve`) and ``tb/`` (TensorBoard logs). The folder carries
+the marker of :mod:`agents.outputs`: ``--force`` replaces those files only, and only in a folder
+``train`` created.
 
 Module map: the recipe (:mod:`agents.training_config`), the behaviour-cloning warm start
 (:mod:`agents.pretrain`), safe loading of a saved policy (:mod:`agents.policies`: the archive is
@@ -45,6 +47,8 @@ from agents.pretrain import Demonstrations, collect_demonstrations, pretrain_pol
 from agents.training_config import (
     CHECKPOINT_DIR,
     CONFIG_FILE,
+    CURVE_FILE,
+    CURVE_PLOT,
     MODEL_FILE,
     PRETRAIN_FILE,
     STATS_FILE,
@@ -244,36 +248,6 @@ def _checkpoint_callback(save_freq: int, path: Path, vec: Any) -> Any:
     return Checkpoint(save_freq=save_freq, save_path=str(path), name_prefix="model")
 
 
-def _outcome_callback(window: int = 100) -> Any:
-    """Log how the last ``window`` training episodes ended (``outcome/<cause>`` in TensorBoard).
-
-    The return alone does not say whether a policy docks or just survives; these fractions
-    (docked, collision, corridor_exit, out_of_bounds, out_of_fuel, truncated) do.
-    """
-    from collections import deque
-
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from tridar_env.env import CAUSES
-
-    class Outcomes(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.recent: deque[str] = deque(maxlen=window)
-
-        def _on_step(self) -> bool:
-            for done, info in zip(self.locals["dones"], self.locals["infos"]):
-                if done:
-                    cause = info.get("termination") or "truncated"
-                    self.recent.append(cause)
-            if self.recent:
-                for cause in (*CAUSES, "truncated"):
-                    self.logger.record(f"outcome/{cause}", self.recent.count(cause) / len(self.recent))
-            return True
-
-    return Outcomes()
-
-
 def _critic_warmup_callback(steps: int) -> Any:
     """Freeze the actor (policy network, action head, log std) for the first ``steps`` steps."""
     from stable_baselines3.common.callbacks import BaseCallback
@@ -308,7 +282,7 @@ def _save_model(model: Any, path: Path) -> None:
 def _discard(out: Path) -> None:
     """``--force``: delete what an earlier ``train`` wrote in ``out`` (known names only; the
     TensorBoard logs stay, SB3 numbers the next run)."""
-    for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE):
+    for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE, CURVE_FILE, CURVE_PLOT):
         (out / name).unlink(missing_ok=True)
     ckpt = out / CHECKPOINT_DIR
     if ckpt.is_dir():
@@ -363,7 +337,9 @@ def train(
         if pretrain_stats is not None:
             text = json.dumps(pretrain_stats, indent=2) + "\n"
             atomic_write(out / PRETRAIN_FILE, lambda p: p.write_text(text))
-        callbacks = [_outcome_callback()]
+        from agents.learning_curve import LearningCurve, plot_learning_curve
+
+        callbacks = [LearningCurve(out / CURVE_FILE)]
         if cfg.pretrain is not None and cfg.pretrain.critic_warmup_steps > 0:
             callbacks.append(_critic_warmup_callback(cfg.pretrain.critic_warmup_steps))
         if cfg.checkpoint_every_steps is not None:
@@ -381,5 +357,8 @@ def train(
         wall = time.perf_counter() - t0
         _save_model(model, out / MODEL_FILE)
         save_stats(vec, out / STATS_FILE)
+        if (out / CURVE_FILE).exists():
+            atomic_write(out / CURVE_PLOT, lambda p: plot_learning_curve(out / CURVE_FILE, p, cfg.name),
+                         suffix=".png")
         return TrainResult(out, out / MODEL_FILE, out / STATS_FILE, int(model.num_timesteps), wall,
                            interrupted, kind)

@@ -37,6 +37,8 @@ STATS_FILE = "vecnormalize.npz"
 CONFIG_FILE = "training.yaml"
 PRETRAIN_FILE = "pretrain.json"
 CHECKPOINT_DIR = "checkpoints"
+CURVE_FILE = "learning_curve.csv"
+CURVE_PLOT = "learning_curve.png"
 
 
 class NormalizeConfig(BaseModel):

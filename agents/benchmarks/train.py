@@ -63,14 +63,15 @@ def _steps_per_s(cfg, steps: int) -> float:
     """Build the run of ``cfg`` and time ``learn(steps)``: environment steps per second."""
     import torch
 
-    from agents.training import _outcome_callback, build_model, make_training_env, validate_training
+    from agents.learning_curve import LearningCurve
+    from agents.training import build_model, make_training_env, validate_training
 
     torch.set_num_threads(cfg.torch_threads)
     venv, _ = make_training_env(cfg, validate_training(cfg))
     try:
         _, model = build_model(cfg, venv)
         t0 = time.perf_counter()
-        model.learn(total_timesteps=steps, callback=_outcome_callback(), progress_bar=False)
+        model.learn(total_timesteps=steps, callback=LearningCurve(), progress_bar=False)
         wall = time.perf_counter() - t0
         return model.num_timesteps / wall
     finally:

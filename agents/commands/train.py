@@ -13,7 +13,7 @@ def add(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="training YAML (or a name in configs/training)")
     p.add_argument("--out", type=Path, default=None,
                    help="run folder (default runs/train/<name>): model.zip, vecnormalize.npz, "
-                        "training.yaml, checkpoints/, tb/")
+                        "training.yaml, learning_curve.csv/.png, checkpoints/, tb/")
     p.add_argument("--timesteps", type=int, default=None, help="override total_timesteps")
     p.add_argument("--n-envs", type=int, default=None, help="override n_envs")
     p.add_argument("--seed", type=int, default=None, help="override the seed")
@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{cfg.algo.upper()} {state} {res.timesteps} steps in {res.wall_time_s:.1f} s "
           f"({res.timesteps / max(res.wall_time_s, 1e-9):.0f} steps/s) on {cfg.n_envs} envs")
     print(f"policy: {res.model_path}; statistics: {res.stats_path}; "
+          f"learning curve: {out / 'learning_curve.png'}; "
           f"TensorBoard: tensorboard --logdir {out / 'tb'}")
     print(f"next: tridar-env evaluate {out} --perception tridar --episodes 100")
     return 130 if res.interrupted else 0

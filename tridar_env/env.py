@@ -160,7 +160,8 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
     the target's Hill/LVLH frame under Clohessy-Wiltshire (or two-body) relative motion. The agent
     sees the TriDAR state vector — mode, validity flags, estimated relative pose and rates — never
     the simulator's truth (which is in ``info`` for logging). One step is one TriDAR frame
-    (``frame_period_s``, default 0.2 s = 5 Hz) times ``frame_skip``; the control is held over it.
+    (``frame_period_s``, default 0.2 s = 5 Hz) times ``frame_skip``; the control is held over it
+    and the pipeline still processes every frame (the agent sees the step's last state vector).
 
     ## Action Space
     ``Box(-1, 1, (3,))`` thrust per axis scaled to ``max_thrust_n`` [N], in the chaser body frame
@@ -271,8 +272,9 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
         self._prev_distance = 0.0
         self._prev_lateral = 0.0
         self._fly_around = FlyAroundTask(self.cfg.env) if self.cfg.env.task == "fly_around" else None
-        self._pre_frame = (self.cfg.env.decision_schedule is not None
-                           and self.cfg.env.perception in ("tridar", "flash"))
+        pipeline = self.cfg.env.perception in ("tridar", "flash")
+        self._pre_frame = pipeline and self.cfg.env.decision_schedule is not None
+        self._every_frame = pipeline and self.cfg.env.decision_schedule is None
         self._step_dt = 0.0
         self._decision_range: float | None = None
         self._renderer: Any = None
@@ -389,8 +391,10 @@ class DockingEnv(gym.Env[npt.NDArray[np.float32], npt.NDArray[np.float32]]):
             cause = self._termination()
             if cause:
                 break
-            if i == frames - 2 and self._pre_frame:
-                # The sensor's frame before the decision: what it publishes at the decision
+            if i < frames - 1 and (self._every_frame or (i == frames - 2 and self._pre_frame)):
+                # The pipeline runs at its frame rate whatever the decision rate (its tracking,
+                # filter and integrity checks are built for it). With a decision schedule it
+                # takes the frame before the decision only: what it publishes at the decision
                 # (a frame's output is available only after its processing latency).
                 self.observer.observe(self.world, self.np_random)
         self._step_dt = self.cfg.env.frame_period_s * frames  # the step's planned length [s]

@@ -164,7 +164,10 @@ class EnvConfig(StrictModel):
         "undock and circle the target (env.fly_around)"
     )
     frame_period_s: FramePeriod = 0.2
-    frame_skip: Annotated[Int, Field(ge=1, le=1000)] = 1
+    frame_skip: Annotated[Int, Field(ge=1, le=1000)] = Field(
+        1, description="frames per agent step (the action is held over them); the pipeline "
+        "(tridar, flash) still processes every frame"
+    )
     decision_schedule: DecisionScheduleConfig | None = Field(
         None, description="decision intervals that lengthen with range (None: frame_skip frames)"
     )

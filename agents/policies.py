@@ -189,11 +189,23 @@ class SB3Policy:
         model: the SB3 algorithm; ``algo``: ``ppo`` | ``sac``; ``path``: the model file.
     """
 
-    def __init__(self, model: Any, algo: str, path: Path, stats: dict[str, np.ndarray] | None) -> None:
+    def __init__(
+        self, model: Any, algo: str, path: Path, stats: dict[str, np.ndarray] | None,
+        blocks: list[str] | None = None,
+    ) -> None:
         self.model = model
         self.algo = algo
         self.path = path
-        self.obs_shape = tuple(model.observation_space.shape)
+        self.blocks = blocks
+        self._indices = None
+        if blocks is not None:
+            from agents.observation_blocks import block_indices
+            from tridar_env.env import OBS_DIM
+
+            self._indices = block_indices(blocks)
+            self.obs_shape: tuple[int, ...] = (OBS_DIM,)
+        else:
+            self.obs_shape = tuple(model.observation_space.shape)
         self.action_shape = tuple(model.action_space.shape)
         self._norm = None
         if stats is not None and bool(stats["norm_obs"]):
@@ -207,12 +219,14 @@ class SB3Policy:
         """Stateless (MLP policy)."""
 
     def normalize(self, obs: npt.ArrayLike) -> npt.NDArray[np.float32]:
-        """What VecNormalize fed the network during training."""
+        """What VecNormalize fed the network during training (the blocks it saw, normalised)."""
         o = np.asarray(obs, dtype=np.float64)
         if o.shape != self.obs_shape:
             raise ValueError(
                 f"observation has shape {o.shape}; the policy {self.path} expects {self.obs_shape}"
             )
+        if self._indices is not None:
+            o = o[self._indices]
         if self._norm is not None:
             mean, std, clip = self._norm
             o = np.clip((o - mean) / std, -clip, clip)
@@ -260,18 +274,25 @@ def load_policy(
     if not stats_path.is_file() and p.stem.startswith("model_") and p.stem.endswith("_steps"):
         stats_path = p.parent / f"vecnormalize_{p.stem[len('model_'):]}.npz"  # a checkpoint
     stats = load_stats(stats_path) if stats_path.is_file() else None
-    policy = SB3Policy(model, algo, p, stats)
-    if stats is not None and stats["obs_mean"].shape != policy.obs_shape:
+    blocks = train_cfg.observation_blocks if train_cfg is not None else None
+    policy = SB3Policy(model, algo, p, stats, blocks)
+    net_shape = tuple(model.observation_space.shape)
+    if stats is not None and stats["obs_mean"].shape != net_shape:
         raise ValueError(
             f"{stats_path} holds statistics of shape {stats['obs_mean'].shape}; the policy expects "
-            f"{policy.obs_shape}"
+            f"{net_shape}"
         )
     from tridar_env.env import OBS_DIM
 
-    if policy.obs_shape != (OBS_DIM,):
-        raise ValueError(
-            f"{p} expects observations of shape {policy.obs_shape}; DockingEnv gives ({OBS_DIM},)"
-        )
+    if blocks is None:
+        want: tuple[int, ...] = (OBS_DIM,)
+    else:
+        from agents.observation_blocks import block_indices
+
+        want = (len(block_indices(blocks)),)
+    if net_shape != want:
+        seen = "DockingEnv gives" if blocks is None else "its training.yaml's observation_blocks give"
+        raise ValueError(f"{p} expects observations of shape {net_shape}; {seen} {want}")
     if cfg is not None:
         n_act = 6 if cfg.dynamics.chaser.attitude == "controlled" else 3
         if policy.action_shape != (n_act,):

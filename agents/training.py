@@ -30,6 +30,7 @@ importable from here too.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib.util
 import inspect
 import json
@@ -209,9 +210,15 @@ def _make_vec_env(cfg: TrainingConfig, mission: MissionConfig, kind: str) -> Any
 
 
 def make_training_env(cfg: TrainingConfig, mission: MissionConfig) -> tuple[Any, str]:
-    """The run's vector env (not yet normalised) and its kind (:func:`vec_env_kind`)."""
+    """The run's vector env (not yet normalised; only ``cfg.observation_blocks`` of the
+    observation when given) and its kind (:func:`vec_env_kind`)."""
     kind = vec_env_kind(cfg, mission)
-    return _make_vec_env(cfg, mission, kind), kind
+    venv = _make_vec_env(cfg, mission, kind)
+    if cfg.observation_blocks is not None:
+        from agents.observation_blocks import VecSelectObservation
+
+        venv = VecSelectObservation(venv, cfg.observation_blocks)
+    return venv, kind
 
 
 def build_model(cfg: TrainingConfig, venv: Any, tensorboard_log: str | None = None) -> tuple[Any, Any]:
@@ -325,6 +332,10 @@ def train(
         pretrain_stats = None
         if cfg.pretrain is not None:
             demos = collect_demonstrations(cfg, mission, progress=progress)
+            if cfg.observation_blocks is not None:  # the controller saw it all, the policy will not
+                from agents.observation_blocks import block_indices
+
+                demos = dataclasses.replace(demos, obs=demos.obs[:, block_indices(cfg.observation_blocks)])
             pretrain_stats = pretrain_policy(model, vec, demos, cfg.pretrain, gamma, cfg.seed)
         # The env and model were built: only now does the run folder appear.
         claim_folder(out, KIND)

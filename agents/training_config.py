@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from perception.config import MissionConfig, config_path
 from tridar_env.registration import bare_id
@@ -102,6 +102,9 @@ class TrainingConfig(BaseModel):
         checkpoint_every_steps: save model + statistics every this many total steps (None: off).
         net_arch, activation, log_std_init: policy network.
         hyperparams: keyword arguments of the SB3 algorithm (``learning_rate``, ``n_steps``, ...).
+        observation_blocks: the blocks of the observation the policy sees (names of
+            :data:`tridar_env.env.OBSERVATION_STRUCTURE`, in this order; None: all of it). Leave
+            out what the training perception cannot reproduce (:mod:`agents.observation_blocks`).
         pretrain: optional behaviour-cloning warm start (:class:`PretrainConfig`, PPO only).
         device: torch device; ``torch_threads``: intra-op threads of the learner.
     """
@@ -125,9 +128,20 @@ class TrainingConfig(BaseModel):
     activation: Literal["tanh", "relu", "elu", "leaky_relu"] | None = None
     log_std_init: float | None = None
     hyperparams: dict[str, Any] = Field(default_factory=dict)
+    observation_blocks: list[str] | None = None
     pretrain: PretrainConfig | None = None
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     torch_threads: Annotated[int, Field(ge=1)] = 1
+
+
+    @field_validator("observation_blocks")
+    @classmethod
+    def _blocks(cls, v: list[str] | None) -> list[str] | None:
+        if v is None:
+            return v
+        from agents.observation_blocks import check_blocks
+
+        return check_blocks(v)
 
 
 def algo_class(algo: str) -> Any:

@@ -21,8 +21,9 @@ scripted episode that crashes counts as a failure and is noted under the table (
 a policy's line stops at one (as ``evaluate`` does).
 
 A policy's training figures are what its run folder records: the steps trained (``num_timesteps``
-of ``model.zip``) and the wall time of SB3's learning loop (from its start time in ``model.zip`` to
-the last TensorBoard event at or before those steps); "-" when the folder does not hold them.
+of ``model.zip``) and the wall time of SB3's learning loop (the learning curve's, else from its
+start time in ``model.zip`` to the last TensorBoard event at or before those steps); "-" when the
+folder does not hold them.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from agents.training_config import CURVE_FILE, MODEL_FILE
 from perception.config import load_config
 
 __all__ = [
@@ -221,11 +223,13 @@ def pipeline_gap(truth_rate: float | None, pipeline_rate: float | None) -> float
 
 def training_info(model: str | Path) -> TrainingInfo:
     """Steps and learning-loop wall time of a policy, read from its run folder (no unpickling:
-    the JSON ``data`` member of ``model.zip`` and the TensorBoard event files).
+    the JSON ``data`` member of ``model.zip``, the learning curve and the TensorBoard event files).
 
-    The steps are ``num_timesteps``; the wall time runs from ``start_time`` (when SB3's ``learn``
-    began) to the last TensorBoard event at or before those steps, in the event file that
-    ``learn`` opened (the one created within a minute of ``start_time``).
+    The steps are ``num_timesteps``; the wall time is the learning curve's (``learning_curve.csv``
+    beside the final ``model.zip``: its last row at or before those steps), else it runs from
+    ``start_time`` (when SB3's ``learn`` began) to the last TensorBoard event at or before those
+    steps, in the event file that ``learn`` opened (the one created within a minute of
+    ``start_time``).
     """
     from agents.policies import model_file
 
@@ -237,6 +241,18 @@ def training_info(model: str | Path) -> TrainingInfo:
         return TrainingInfo(None, None)
     steps = data.get("num_timesteps") if isinstance(data, dict) else None
     steps = int(steps) if isinstance(steps, int) and not isinstance(steps, bool) else None
+    curve = p.parent / CURVE_FILE
+    if steps is not None and p.name == MODEL_FILE and curve.is_file():
+        from agents.learning_curve import read_learning_curve
+
+        try:
+            c = read_learning_curve(curve)
+        except (OSError, ValueError):
+            c = None
+        if c is not None:
+            upto = c["timesteps"] <= steps
+            if upto.any():
+                return TrainingInfo(steps, float(c["wall_s"][upto][-1]))
     start = data.get("start_time") if isinstance(data, dict) else None
     if steps is None or not isinstance(start, (int, float)) or isinstance(start, bool):
         return TrainingInfo(steps, None)

@@ -246,6 +246,15 @@ def test_sb3_line_equals_evaluate_and_reads_its_training(tmp_path: Path, capsys)
     info = bt.training_info(run)
     assert info.steps == res.timesteps == 128
     assert info.wall_time_s is not None and 0.0 < info.wall_time_s <= res.wall_time_s + 0.5
+    # The wall time is the learning curve's last row; without the curve, TensorBoard's.
+    from agents.learning_curve import read_learning_curve
+
+    assert info.wall_time_s == read_learning_curve(run / "learning_curve.csv")["wall_s"][-1]
+    (run / "learning_curve.csv").rename(tmp_path / "curve.csv")
+    tb_info = bt.training_info(run)
+    assert tb_info.steps == 128 and tb_info.wall_time_s is not None
+    assert 0.0 < tb_info.wall_time_s <= res.wall_time_s + 0.5
+    (tmp_path / "curve.csv").rename(run / "learning_curve.csv")
 
     path = _spec(tmp_path, [{"env_id": FA, "policy": f"sb3:{run}", "perceptions": ["truth"],
                              "episodes": 2, "seed": 5, "max_steps": 20}])

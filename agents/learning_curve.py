@@ -33,6 +33,7 @@ __all__ = ["COLUMNS", "LearningCurve", "plot_learning_curve", "read_learning_cur
 
 OUTCOMES = (*CAUSES, "truncated")
 COLUMNS = ("timesteps", "wall_s", "episodes", "return_mean", "length_mean", *OUTCOMES)
+_COUNTS = ("timesteps", "episodes")
 
 
 class LearningCurve(BaseCallback):  # type: ignore[misc]
@@ -101,7 +102,8 @@ class LearningCurve(BaseCallback):  # type: ignore[misc]
             if new:
                 writer.writeheader()
             r = self.row()
-            writer.writerow({k: (f"{r[k]:.6g}" if not math.isnan(r[k]) else "nan") for k in COLUMNS})
+            writer.writerow({k: (f"{int(r[k])}" if k in _COUNTS else
+                                 f"{r[k]:.6g}" if not math.isnan(r[k]) else "nan") for k in COLUMNS})
 
 
 def read_learning_curve(path: str | Path) -> dict[str, np.ndarray]:

@@ -32,6 +32,8 @@ def test_train_writes_one_row_per_rollout_with_the_episode_counts(tmp_path):
     out = tmp_path / "run"
     train(TrainingConfig(**SHORT), out, progress=False)
     c = read_learning_curve(out / "learning_curve.csv")
+    lines = (out / "learning_curve.csv").read_text().splitlines()
+    assert lines[1].startswith("32,") and lines[-1].startswith("128,")  # counts written whole
     steps = c["timesteps"]
     assert np.array_equal(steps, 32.0 * np.arange(1, 5))
     # Two envs, each ending an episode every 10 steps: 2 * floor(steps per env / 10) so far.

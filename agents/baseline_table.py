@@ -40,7 +40,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from agents.training_config import CURVE_FILE, MODEL_FILE
+from agents.training_config import CURVE_FILE
 from perception.config import load_config
 
 __all__ = [
@@ -226,7 +226,8 @@ def training_info(model: str | Path) -> TrainingInfo:
     the JSON ``data`` member of ``model.zip``, the learning curve and the TensorBoard event files).
 
     The steps are ``num_timesteps``; the wall time is the learning curve's (``learning_curve.csv``
-    beside the final ``model.zip``: its last row at or before those steps), else it runs from
+    beside the model, as for ``model.zip`` and ``best_model.zip``: its last row at or before those
+    steps), else it runs from
     ``start_time`` (when SB3's ``learn`` began) to the last TensorBoard event at or before those
     steps, in the event file that ``learn`` opened (the one created within a minute of
     ``start_time``).
@@ -242,7 +243,7 @@ def training_info(model: str | Path) -> TrainingInfo:
     steps = data.get("num_timesteps") if isinstance(data, dict) else None
     steps = int(steps) if isinstance(steps, int) and not isinstance(steps, bool) else None
     curve = p.parent / CURVE_FILE
-    if steps is not None and p.name == MODEL_FILE and curve.is_file():
+    if steps is not None and curve.is_file():
         from agents.learning_curve import read_learning_curve
 
         try:

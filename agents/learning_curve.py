@@ -130,9 +130,11 @@ def read_learning_curve(path: str | Path) -> dict[str, np.ndarray]:
     return {name: arr[:, k] for k, name in enumerate(COLUMNS)}
 
 
-def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "") -> Path:
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "",
+                        validation: str | Path | None = None) -> Path:
     """Draw the curve of ``csv_path`` into ``png_path``: outcome fractions and mean return
-    against training steps, the wall time on the top axis. Returns ``png_path``."""
+    against training steps, the wall time on the top axis, and the docked fraction of each
+    validation (``validation.csv`` of :mod:`agents.validation`) when given. Returns ``png_path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -144,6 +146,11 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str =
     for cause, style in (("docked", "g-"), ("collision", "r-"), ("truncated", "b--"),
                          ("corridor_exit", "m:")):
         a1.plot(steps, 100.0 * c[cause], style, label=cause)
+    if validation is not None:
+        v = np.genfromtxt(validation, delimiter=",", names=True, ndmin=1)
+        if v.size:
+            a1.plot(v["timesteps"] / 1e6, 100.0 * v["docked"] / v["episodes"], "ko", ms=4,
+                    label="docked, validation")
     a1.set_ylabel("recent training episodes [%]")
     a1.set_ylim(-2, 102)
     a1.grid(alpha=0.3)

@@ -16,7 +16,9 @@ A training run writes, into its folder: ``model.zip`` (SB3), ``vecnormalize.npz`
 return statistics as plain arrays, so that evaluation never unpickles them), ``training.yaml`` (the
 resolved config), ``checkpoints/`` (model + statistics every ``checkpoint_every_steps``),
 ``learning_curve.csv`` / ``.png`` (how the training episodes ended, per rollout, against steps
-and wall time: :mod:`agents.learning_curve`) and ``tb/`` (TensorBoard logs). The folder carries
+and wall time: :mod:`agents.learning_curve`), with ``validation:`` also ``validation.csv`` and
+the best validated policy ``best_model.zip`` + ``best_model_vecnormalize.npz``
+(:mod:`agents.validation`), and ``tb/`` (TensorBoard logs). The folder carries
 the marker of :mod:`agents.outputs`: ``--force`` replaces those files only, and only in a folder
 ``train`` created.
 
@@ -56,6 +58,7 @@ from agents.training_config import (
     NormalizeConfig,
     PretrainConfig,
     TrainingConfig,
+    ValidationConfig,
     algo_class,
     env_args,
     mission_path,
@@ -70,6 +73,7 @@ __all__ = [
     "SB3Policy",
     "TrainResult",
     "TrainingConfig",
+    "ValidationConfig",
     "batch_refusal",
     "build_model",
     "collect_demonstrations",
@@ -279,6 +283,29 @@ def _critic_warmup_callback(steps: int) -> Any:
     return CriticWarmup()
 
 
+def _validation_callback(cfg: TrainingConfig, mission: MissionConfig, out: Path, vec: Any) -> Any:
+    """The :class:`agents.validation.Validation` of ``cfg.validation`` (its env built here)."""
+    import gymnasium as gym
+
+    from agents.validation import Validation
+
+    val = cfg.validation
+    assert val is not None
+    env_id, kwargs = env_args(cfg, mission, train=False)
+    indices = None
+    if cfg.observation_blocks is not None:
+        from agents.observation_blocks import block_indices
+
+        indices = block_indices(cfg.observation_blocks)
+
+    def save(model: Any, vec: Any, model_path: Path, stats_path: Path) -> None:
+        _save_model(model, model_path)
+        save_stats(vec, stats_path)
+
+    return Validation(gym.make(env_id, **kwargs), vec, out, val.every_steps, val.episodes, val.seed,
+                      indices, save)
+
+
 def _save_model(model: Any, path: Path) -> None:
     # Transient training state is left out: it is pickled by SB3 and useless for inference.
     exclude = ["_last_obs", "_last_episode_starts", "_last_original_obs", "ep_info_buffer",
@@ -289,7 +316,10 @@ def _save_model(model: Any, path: Path) -> None:
 def _discard(out: Path) -> None:
     """``--force``: delete what an earlier ``train`` wrote in ``out`` (known names only; the
     TensorBoard logs stay, SB3 numbers the next run)."""
-    for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE, CURVE_FILE, CURVE_PLOT):
+    from agents.validation import BEST_MODEL_FILE, BEST_STATS_FILE, VALIDATION_FILE
+
+    for name in (MODEL_FILE, STATS_FILE, CONFIG_FILE, PRETRAIN_FILE, CURVE_FILE, CURVE_PLOT,
+                 BEST_MODEL_FILE, BEST_STATS_FILE, VALIDATION_FILE):
         (out / name).unlink(missing_ok=True)
     ckpt = out / CHECKPOINT_DIR
     if ckpt.is_dir():
@@ -351,6 +381,9 @@ def train(
         from agents.learning_curve import LearningCurve, plot_learning_curve
 
         callbacks = [LearningCurve(out / CURVE_FILE)]
+        if cfg.validation is not None:
+            callbacks.append(_validation_callback(cfg, mission, out, vec))
+            stack.callback(callbacks[-1].env.close)
         if cfg.pretrain is not None and cfg.pretrain.critic_warmup_steps > 0:
             callbacks.append(_critic_warmup_callback(cfg.pretrain.critic_warmup_steps))
         if cfg.checkpoint_every_steps is not None:
@@ -369,7 +402,10 @@ def train(
         _save_model(model, out / MODEL_FILE)
         save_stats(vec, out / STATS_FILE)
         if (out / CURVE_FILE).exists():
-            atomic_write(out / CURVE_PLOT, lambda p: plot_learning_curve(out / CURVE_FILE, p, cfg.name),
-                         suffix=".png")
+            from agents.validation import VALIDATION_FILE
+
+            val = out / VALIDATION_FILE if (out / VALIDATION_FILE).exists() else None
+            atomic_write(out / CURVE_PLOT,
+                         lambda p: plot_learning_curve(out / CURVE_FILE, p, cfg.name, val), suffix=".png")
         return TrainResult(out, out / MODEL_FILE, out / STATS_FILE, int(model.num_timesteps), wall,
                            interrupted, kind)

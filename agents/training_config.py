@@ -78,6 +78,18 @@ class PretrainConfig(BaseModel):
     critic_warmup_steps: Annotated[int, Field(ge=0)] = 0
 
 
+class ValidationConfig(BaseModel):
+    """Validation while training (:mod:`agents.validation`): every ``every_steps`` total steps
+    the current policy flies ``episodes`` runs of the mission as evaluation flies it (reset seeds
+    ``seed + k``); the best so far is kept as ``best_model.zip``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    every_steps: Annotated[int, Field(ge=1)]
+    episodes: Annotated[int, Field(ge=1, le=10_000)] = 50
+    seed: Annotated[int, Field(ge=0)] = 1_000_000
+
+
 class TrainingConfig(BaseModel):
     """A training run (one YAML file in ``configs/training``).
 
@@ -105,6 +117,8 @@ class TrainingConfig(BaseModel):
         observation_blocks: the blocks of the observation the policy sees (names of
             :data:`tridar_env.env.OBSERVATION_STRUCTURE`, in this order; None: all of it). Leave
             out what the training perception cannot reproduce (:mod:`agents.observation_blocks`).
+        validation: optional validation while training, the best policy kept
+            (:class:`ValidationConfig`).
         pretrain: optional behaviour-cloning warm start (:class:`PretrainConfig`, PPO only).
         device: torch device; ``torch_threads``: intra-op threads of the learner.
     """
@@ -129,6 +143,7 @@ class TrainingConfig(BaseModel):
     log_std_init: float | None = None
     hyperparams: dict[str, Any] = Field(default_factory=dict)
     observation_blocks: list[str] | None = None
+    validation: ValidationConfig | None = None
     pretrain: PretrainConfig | None = None
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     torch_threads: Annotated[int, Field(ge=1)] = 1
@@ -158,14 +173,15 @@ def mission_path(env_id: str, mission: str | None) -> Path:
     return Path(mission) if mission else config_path(ENV_IDS[bare_id(env_id)])
 
 
-def env_args(cfg: TrainingConfig, mission: MissionConfig) -> tuple[str, dict[str, Any]]:
-    """``(env id, gym.make keyword arguments)`` of the training env (``train_config`` included)."""
+def env_args(cfg: TrainingConfig, mission: MissionConfig, train: bool = True) -> tuple[str, dict[str, Any]]:
+    """``(env id, gym.make keyword arguments)`` of the training env (``train_config`` included;
+    with ``train=False`` without it: the mission as evaluation flies it)."""
     env_id = cfg.env_id if ":" in cfg.env_id else f"tridar_env:{cfg.env_id}"
+    overrides = {**cfg.config, **cfg.train_config} if train else dict(cfg.config)
     kwargs = {
         "perception": cfg.perception, "config": cfg.mission,
         "max_episode_steps": mission.env.max_episode_steps,
-        **{k: v for k, v in {**cfg.config, **cfg.train_config}.items()
-           if k.replace(".", "__") != "env__perception"},
+        **{k: v for k, v in overrides.items() if k.replace(".", "__") != "env__perception"},
     }
     return env_id, kwargs
 

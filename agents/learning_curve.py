@@ -98,7 +98,7 @@ class LearningCurve(BaseCallback):  # type: ignore[misc]
             return
         new = not self.path.exists()
         with self.path.open("a", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=COLUMNS)
+            writer = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator="\n")
             if new:
                 writer.writeheader()
             r = self.row()

@@ -88,7 +88,7 @@ class Validation(BaseCallback):  # type: ignore[misc]
         path = self.out / VALIDATION_FILE
         new = not path.exists()
         with path.open("a", newline="") as fh:
-            w = csv.writer(fh)
+            w = csv.writer(fh, lineterminator="\n")
             if new:
                 w.writerow(COLUMNS)
             w.writerow([self.num_timesteps, f"{time.perf_counter() - self._t0:.6g}", self.episodes,

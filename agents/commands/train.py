@@ -43,5 +43,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"policy: {res.model_path}; statistics: {res.stats_path}; "
           f"learning curve: {out / 'learning_curve.png'}; "
           f"TensorBoard: tensorboard --logdir {out / 'tb'}")
-    print(f"next: tridar-env evaluate {out} --perception tridar --episodes 100")
+    best = out / "best_model.zip"
+    target = best if cfg.validation is not None and best.is_file() else out
+    print(f"next: tridar-env evaluate {target} --perception tridar --episodes 100")
     return 130 if res.interrupted else 0

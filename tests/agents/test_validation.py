@@ -73,3 +73,11 @@ def test_the_best_policy_loads_and_flies_the_full_observation(run):
 def test_validation_needs_a_positive_interval():
     with pytest.raises(ValueError, match="every_steps"):
         TrainingConfig(**{**RUN, "validation": {"every_steps": 0}})
+
+
+def test_validating_does_not_change_what_is_learnt(run, tmp_path):
+    plain = tmp_path / "plain"
+    train(TrainingConfig(**{**RUN, "validation": None}), plain, progress=False)
+    a, b = _weights(run / "model.zip"), _weights(plain / "model.zip")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not (plain / "validation.csv").exists() and not (plain / "best_model.zip").exists()

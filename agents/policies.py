@@ -186,7 +186,8 @@ class SB3Policy:
     ``predict``. Observations must have the shape the policy was trained on.
 
     Attributes:
-        model: the SB3 algorithm; ``algo``: ``ppo`` | ``sac``; ``path``: the model file.
+        model: the SB3 algorithm; ``algo``: ``ppo`` | ``sac``; ``path``: the model file;
+        ``blocks``: the observation blocks its network sees (None: all), ``indices`` theirs.
     """
 
     def __init__(
@@ -197,15 +198,15 @@ class SB3Policy:
         self.algo = algo
         self.path = path
         self.blocks = blocks
-        self._indices = None
+        #: Indices of the blocks the network sees in the full observation (None: all of it).
+        self.indices = None
+        self.obs_shape = tuple(model.observation_space.shape)
         if blocks is not None:
             from agents.observation_blocks import block_indices
             from tridar_env.env import OBS_DIM
 
-            self._indices = block_indices(blocks)
-            self.obs_shape: tuple[int, ...] = (OBS_DIM,)
-        else:
-            self.obs_shape = tuple(model.observation_space.shape)
+            self.indices = block_indices(blocks)
+            self.obs_shape = (OBS_DIM,)
         self.action_shape = tuple(model.action_space.shape)
         self._norm = None
         if stats is not None and bool(stats["norm_obs"]):
@@ -225,8 +226,8 @@ class SB3Policy:
             raise ValueError(
                 f"observation has shape {o.shape}; the policy {self.path} expects {self.obs_shape}"
             )
-        if self._indices is not None:
-            o = o[self._indices]
+        if self.indices is not None:
+            o = o[self.indices]
         if self._norm is not None:
             mean, std, clip = self._norm
             o = np.clip((o - mean) / std, -clip, clip)
@@ -284,12 +285,7 @@ def load_policy(
         )
     from tridar_env.env import OBS_DIM
 
-    if blocks is None:
-        want: tuple[int, ...] = (OBS_DIM,)
-    else:
-        from agents.observation_blocks import block_indices
-
-        want = (len(block_indices(blocks)),)
+    want = (OBS_DIM,) if policy.indices is None else (len(policy.indices),)
     if net_shape != want:
         seen = "DockingEnv gives" if blocks is None else "its training.yaml's observation_blocks give"
         raise ValueError(f"{p} expects observations of shape {net_shape}; {seen} {want}")

@@ -24,7 +24,7 @@ import numpy.typing as npt
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
-from tridar_env.env import OBSERVATION_STRUCTURE
+from tridar_env.env import OBSERVATION_STRUCTURE, observation_slices
 
 __all__ = ["BLOCK_NAMES", "VecSelectObservation", "block_indices", "check_blocks"]
 
@@ -47,13 +47,9 @@ def check_blocks(blocks: Sequence[str]) -> list[str]:
 
 def block_indices(blocks: Sequence[str]) -> npt.NDArray[np.intp]:
     """Indices into the full observation of ``blocks``, in the order given."""
-    start: dict[str, tuple[int, int]] = {}
-    k = 0
-    for name, size, _, _ in OBSERVATION_STRUCTURE:
-        start[name] = (k, size)
-        k += size
+    where = observation_slices()
     names = check_blocks(blocks)
-    return np.concatenate([np.arange(start[n][0], start[n][0] + start[n][1]) for n in names]).astype(np.intp)
+    return np.concatenate([np.arange(where[n].start, where[n].stop) for n in names]).astype(np.intp)
 
 
 class VecSelectObservation(VecEnvWrapper):  # type: ignore[misc]

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from perception.config import PipelineConfig
 from perception.estimation.registration import RegistrationResult, icp
-from perception.geometry import cross_rows, pose_error, skew
+from perception.geometry import cross_rows, fast_matrix_to_rotvec, pose_error, skew
 from perception.numeric import median
 from perception.pipeline.modes import FrameVerdict
 from perception.pipeline.publish import FrameOutput, lever, tof_share
@@ -164,7 +164,46 @@ class TrackingMode:
         if verdict.good and tri.n_updates > 0:
             tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
             tri.slides.switch(pts, cloud, t_ref)
+        outside = self.outside_corridor(t_ref)
+        if outside is not None:
+            verdict = FrameVerdict(False, outside)
+            self.drop(t, outside)
         self.conclude(cloud, pts, t, t_ref, res, verdict)
+
+    def outside_corridor(self, t_ref: float) -> str | None:
+        """Why the track's pose at ``t_ref`` [s] is outside the mission's approach corridor (its
+        attitude further from the nominal than ``corridor.attitude_tolerance_deg``), or None.
+
+        The corridor is the mission's statement of where the target can be; search acquires
+        only inside it, and a track that has drifted out of it is wrong by at least its distance
+        to the corridor, whatever its covariance says. On a generated cylinder bus whose roll only
+        a thin boom pins, the filter took a roll rate of 2 deg/s the target never had and the roll
+        left the 20 deg corridor for 50-160 deg, published valid 0.3-0.88 m off at the port
+        between the turn monitor's holds. Only the attitude is judged: close in, the line of
+        sight to the target origin of a large target can leave the cone while the port is on
+        the axis.
+        """
+        from perception.pipeline.search import corridor_constraint  # search imports this module
+
+        tri = self.tri
+        corridor = corridor_constraint(tri.pc, tri.R_nominal)
+        if corridor is None or not tri.filter.initialized or tri.logic.mode != Mode.TRACKING:
+            return None
+        R = tri.filter.pose_at(t_ref)[:3, :3]
+        if corridor.attitude_ok(R[None])[0]:
+            return None
+        off = math.degrees(float(np.linalg.norm(fast_matrix_to_rotvec(corridor.R_sensor_target_nominal.T @ R))))
+        return (f"tracked attitude {off:.1f} deg from the nominal, outside the approach corridor "
+                f"(corridor.attitude_tolerance_deg={tri.pc.corridor.attitude_tolerance_deg:g})")
+
+    def drop(self, t: float, reason: str) -> None:
+        """Lose the track now, for ``reason``, and forget it: a wrong track is no prediction to
+        reacquire from (search starts afresh, inside the corridor)."""
+        tri = self.tri
+        tri.logic.go(t, Mode.SEARCH, f"loss of track: {reason}")
+        self.after_loss(True, t)
+        tri.lost_track = None
+        tri.stats.corridor_exits += 1
 
     def take(self, scene: TruthScene | PointCloud, t: float, pattern: Any) -> PointCloud | None:
         """The frame's cloud, or None after recording a frame with too few points to register

@@ -90,6 +90,7 @@ class PipelineStats:
     symmetry_checks: int = 0
     symmetry_switches: int = 0
     reacquired_from_track: int = 0
+    corridor_exits: int = 0  # tracks dropped for leaving the approach corridor
     outline_refinements: int = 0
     outline_accepted: int = 0
     registration_time_s: list[float] = field(default_factory=list)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 import perception.estimation.pah as pah_module
 from perception.config import load_config
@@ -12,6 +13,7 @@ from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import make_T, rotation_z, skew
 from perception.pipeline import TriDAR, approach_pose
 from perception.pipeline.filter import PoseFilter
+from perception.pipeline.state import Mode
 from perception.shapes import generate_target
 from tests.perception.test_pipeline import Fly, _run
 
@@ -189,3 +191,34 @@ def test_a_turn_adds_its_variance_about_its_own_axis_and_pivot() -> None:
     np.testing.assert_allclose(f.P - P0, (s**2 - 1e-6) * np.outer(u, u), atol=1e-15)
     with pytest.raises(ValueError, match="floor_turn"):
         f.floor_turn(np.zeros(3), q, s)
+
+
+def test_a_track_that_leaves_the_approach_corridor_is_dropped_and_never_published() -> None:
+    """The stock corridor (target attitude within 20 deg of the nominal) is the mission's word
+    on where the target can be: a track turned 40 deg about the bus's axis (as a false roll rate
+    carried one, 50-160 deg off and published valid between the turn monitor's holds) is lost at
+    its next frame and forgotten (no reacquisition from its prediction); no state vector with a
+    pose outside the corridor is published, and search acquires again inside it."""
+    cfg = load_config("final_approach")
+    tol = cfg.pipeline.corridor.attitude_tolerance_deg
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(7))
+    fly = Fly(approach_pose(cfg, target, 14.0, lateral=(0.03, -0.02)))
+    hist = _run(tri, fly, 30)
+    assert tri.mode == Mode.TRACKING and hist[-1][1].valid.attitude
+    exits = tri.stats.corridor_exits  # a first track may have drifted out already
+
+    def turn(k: int, t: float) -> None:
+        if k == 0:  # the bus's axis is the target's z
+            tri.filter.R = tri.filter.R @ rotation_z(np.radians(40.0))
+
+    hist += _run(tri, fly, 60, t0=30 * 0.2, hook=turn)
+    posed = [sv for _, sv in hist if sv.valid.attitude and not sv.valid.degraded]
+    off = [np.degrees(np.linalg.norm(Rotation.from_matrix(tri.R_nominal.T @ sv.T_sensor_target[:3, :3]).as_rotvec()))
+           for sv in posed]
+    assert max(off) <= tol
+    assert tri.stats.corridor_exits > exits
+    assert any("outside the approach corridor" in e.reason for e in tri.logic.events if e.t >= 30 * 0.2)
+    assert tri.mode == Mode.TRACKING  # acquired again, inside the corridor
+    assert any(sv.valid.attitude for _, sv in hist[-10:])

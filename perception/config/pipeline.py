@@ -157,6 +157,12 @@ class IntegrityConfig(StrictModel):
         5, description="turn monitor: far turns that the last probes all ruled out by a wide "
         "margin (10 ambiguity_margin), with no turn held, are looked at every this many probes"
     )
+    turn_rule_out_probes: Annotated[Int, Field(ge=2, le=1000)] | None = Field(
+        6, description="turn monitor: a far turn that explained the scan worse than the tracked "
+        "pose at each of the last this many probes is ruled out, however small each lead (a "
+        "sign test: a turn the scans cannot tell apart loses that many in a row with "
+        "probability 2**-n); None: the mean lead alone decides"
+    )
 
     @model_validator(mode="after")
     def _accuracy_within_integrity(self) -> IntegrityConfig:

@@ -348,7 +348,7 @@ class SlideMonitor:
         # cost; a healthy track's far turns score 1-3 below it).
         n = self.tri.pc.symmetry_switch_checks
         wide = (len(self.turn_leads) >= n and not self.turn_held()
-                and float(self.turn_leads[:, 2].max()) < -10.0 * ig.ambiguity_margin)
+                and float(self.turn_leads[-n:, 2].max()) < -10.0 * ig.ambiguity_margin)
         skip_far = wide and self._far_wait > 0
         self._far_wait = (self._far_wait - 1 if skip_far else ig.turn_far_every - 1) if wide else 0
         if grid.size and not skip_far:
@@ -389,9 +389,20 @@ class SlideMonitor:
         # at -1, so one probe with no far turn does not outweigh the others.
         far_lead = self.turn_leads[-1, 2] if skip_far else (lead[k_far] if k_far >= 0 else -1.0)
         judged = np.maximum([lead[0], lead[1], far_lead], -1.0)
-        self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-n:]
-        mean_lead = self.turn_leads.mean(axis=0)
+        m = ig.turn_rule_out_probes or 0
+        self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-max(n, m):]
+        mean_lead = self.turn_leads[-n:].mean(axis=0)
         alike = mean_lead >= -ig.ambiguity_margin
+        # A far turn that lost to the tracked pose at each of the last m probes is ruled out,
+        # however small each loss (a sign test). Close to a cylinder bus's flat end face, a turn
+        # 7-14 deg about the bus's axis lost by 0.01-0.05 at probe after probe (the end face's
+        # rim and the port's surroundings tell them apart only by a few points a frame), yet
+        # its mean lead stayed inside the margin: held, it kept a track right to 0.1 deg
+        # degraded at 4-5 m, and 9 of 10 approaches timed out holding there. A wrong track's
+        # far turn wins some probes (the cylinder bus's roll 8-17 deg off at 25 m: leads of
+        # -0.001 to +0.13) and stays alike.
+        if m and len(self.turn_leads) >= m and bool(np.all(self.turn_leads[-m:, 2] < 0.0)):
+            alike[2] = False
         # A near push counts where ICP settled: one the iteration cap stopped on its way back
         # (a weak slope, not a valley) held a generated assembly's roll at 3-5 deg and its pose
         # degraded in the last metres of a docking it had flown within its bound.

@@ -76,7 +76,12 @@ tracked pose's, as the twin monitor judges twins) is another answer the scan all
 uncertain by its offset. The near pushes and the best far turn are judged on their mean lead over
 the last ``symmetry_switch_checks`` probes: the boom's returns vary from frame to frame, and single
 frames with none of them made turns that the others had ruled out by 0.3-2.7 look alike, holding
-the bus degraded at 12 m with its roll right to 1 deg. Far turns that the last probes all ruled out
+the bus degraded at 12 m with its roll right to 1 deg. A far turn that lost to the tracked pose at
+each of the last ``turn_rule_out_probes`` probes is ruled out however small each loss (a sign
+test: a turn the scans truly cannot tell apart loses six in a row with probability 1/64; close to
+the bus's flat end face a turn 7-14 deg off lost every probe by 0.01-0.05, inside the margin, and
+held right tracks degraded at 4-5 m until 9 approaches of 10 timed out; a wrong track's far turn
+wins some probes and stays alike). Far turns that the last probes all ruled out
 by a wide margin (ten ``ambiguity_margin``), with no turn held, are looked at every
 ``turn_far_every`` probes only: on a healthy track they score 1-3 below it, and they are most of a
 probe's cost. Where a near push stays off (ICP settled there, explaining the scan as well), ICP
@@ -393,14 +398,7 @@ class SlideMonitor:
         self.turn_leads = np.vstack([self.turn_leads.reshape(-1, 3), judged])[-max(n, m):]
         mean_lead = self.turn_leads[-n:].mean(axis=0)
         alike = mean_lead >= -ig.ambiguity_margin
-        # A far turn that lost to the tracked pose at each of the last m probes is ruled out,
-        # however small each loss (a sign test). Close to a cylinder bus's flat end face, a turn
-        # 7-14 deg about the bus's axis lost by 0.01-0.05 at probe after probe (the end face's
-        # rim and the port's surroundings tell them apart only by a few points a frame), yet
-        # its mean lead stayed inside the margin: held, it kept a track right to 0.1 deg
-        # degraded at 4-5 m, and 9 of 10 approaches timed out holding there. A wrong track's
-        # far turn wins some probes (the cylinder bus's roll 8-17 deg off at 25 m: leads of
-        # -0.001 to +0.13) and stays alike.
+        # A far turn that lost at each of the last m probes is ruled out (a sign test; module doc).
         if m and len(self.turn_leads) >= m and bool(np.all(self.turn_leads[-m:, 2] < 0.0)):
             alike[2] = False
         # A near push counts where ICP settled: one the iteration cap stopped on its way back

@@ -222,3 +222,60 @@ def test_a_track_that_leaves_the_approach_corridor_is_dropped_and_never_publishe
     assert any("outside the approach corridor" in e.reason for e in tri.logic.events if e.t >= 30 * 0.2)
     assert tri.mode == Mode.TRACKING  # acquired again, inside the corridor
     assert any(sv.valid.attitude for _, sv in hist[-10:])
+
+
+@pytest.mark.parametrize("rule_out", [6, None])
+def test_a_far_turn_that_loses_probe_after_probe_is_ruled_out(monkeypatch, rule_out) -> None:
+    """A far turn (30 deg about the registration's weakest rotation, where ICP stays) that
+    explains the scan a little worse than the tracked pose (lead -0.02, inside the 0.05
+    ambiguity margin) is another answer at the first probes; having lost at each of the last
+    ``turn_rule_out_probes`` probes it is ruled out (a sign test), and one probe where it leads
+    makes it alike again. With the rule off the mean lead alone decides: alike at every probe."""
+    from perception.pipeline import slides
+
+    cfg = load_config("final_approach", pipeline__integrity__turn_check_period_s=1.0,
+                      pipeline__integrity__turn_rule_out_probes=rule_out,
+                      pipeline__corridor__attitude_tolerance_deg=120.0)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon = tri.slides
+    T = approach_pose(cfg, target, 12.0)
+    cov = np.diag([1e-6] * 3 + [1e-6, 1e-6, 4e-6])  # weakest rotation: about the sensor's z
+    res = RegistrationResult(T, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5, covariance=cov)
+    R_other = rotation_z(np.radians(30.0)) @ T[:3, :3]
+    lead = {"value": -0.02}
+
+    def near_other(Ti: np.ndarray) -> bool:
+        return bool(np.trace(Ti[:3, :3].T @ R_other) > 1.0 + 2.0 * np.cos(np.radians(5.0)))
+
+    def verify(self, points, sigma, Ts, directions=None):  # type: ignore[no-untyped-def]
+        same = np.array([np.allclose(Ti, T) for Ti in Ts])
+        return np.ones(len(Ts)), np.array([0.0 if s else lead["value"] if near_other(Ti) else -0.5
+                                           for s, Ti in zip(same, Ts)])
+
+    def stub_icp(points, model, T0, **kw):  # type: ignore[no-untyped-def]
+        # ICP stays at the far turn (a basin of its own) and brings every other start back
+        return RegistrationResult(T0 if near_other(T0) else T, fitness=1.0, inlier_rmse=0.003,
+                                  converged=True, iterations=5, covariance=cov)
+
+    monkeypatch.setattr(pah_module.PAHDatabase, "verify_poses", verify)
+    monkeypatch.setattr(slides, "icp", stub_icp)
+    monkeypatch.setattr(tri.tracking, "outline_refine", lambda r, p, c: r)
+    tri.filter.initialize(0.0, T, np.eye(6) * 1e-6)
+    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None})()
+    pts = np.zeros((5, 3))
+
+    def probe(k: int) -> float:
+        mon.apply(pts, cloud, res, float(k), cfg.pipeline.icp, 10)
+        return np.degrees(mon.turn_sigma_rad)
+
+    found = [probe(k) for k in range(8)]
+    if rule_out is None:
+        assert all(s == pytest.approx(30.0, abs=0.5) for s in found)
+        return
+    assert all(s == pytest.approx(30.0, abs=0.5) for s in found[:rule_out - 1])
+    assert all(s == 0.0 for s in found[rule_out - 1:])  # lost 6 in a row: ruled out
+    lead["value"] = 0.01
+    assert probe(8) == pytest.approx(30.0, abs=0.5)  # it leads once: another answer again
+    lead["value"] = -0.02
+    assert probe(9) == pytest.approx(30.0, abs=0.5)  # the run of losses starts again

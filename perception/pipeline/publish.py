@@ -162,9 +162,8 @@ class Publisher:
             blocks += [slice(3, 6), slice(9, 12)]
         # The registrations' correlated error does not average down. Two covariances, as ARAIM
         # keeps them: the published one adds the typical correlated error (accuracy_bias_*; along
-        # the line of sight at least the time of flight's range bias; and over the scan's lever
-        # arm on attitude, as a turn about the port: the small cubesat's attitude NEES was 7.9
-        # without it), the protection level the worst shapes' allowance (bias_*, along the line
+        # the line of sight at least the time of flight's range bias: the state vector's NEES
+        # stays near 3), the protection level the worst shapes' allowance (bias_*, along the line
         # of sight at least that range bias), on position and, over the scan's lever arm, on
         # attitude as a turn about the port (the origin moves with it; the port's bound does
         # not). bias_* >= accuracy_bias_* (config), so the bound covers the published covariance.
@@ -176,9 +175,9 @@ class Publisher:
         acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * port_rng)
         bias = max(ig.bias_m, ig.bias_rad * port_rng)
         rb = out.tof_share * self.tof_bias_m
-        arm = max(out.lever_m, 1e-3)
-        P_acc = turn_about(_with_bias(fP, acc, rb, los), fR, r_port, (acc / arm) ** 2)
-        P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port, (bias / arm) ** 2)
+        P_acc = _with_bias(fP, acc, rb, los)
+        P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
+                           (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:
             for b in blocks:
                 cov[a, b] = P_acc[a, b]

@@ -55,7 +55,6 @@ class FrameOutput:
     ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
     lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
     tof_share: float = 0.0  # fraction of the frame's points the time-of-flight ranged
-    disputed: bool = False  # the frame's registration was rejected by the filter's gate
 
 
 def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
@@ -191,10 +190,5 @@ class Publisher:
         # A track is trusted once confirmed by a few accepted frames (its rates estimated; an
         # acquisition's transient is not yet inside the filter's covariance).
         # A registration that leaves many returns unexplained is not a pose to close in on.
-        # A pose the frame's own registration disputes (rejected by the filter's innovation gate:
-        # one of the two is wrong) is not one to close in on either: a new track on a cylinder
-        # bus 7 deg off in roll at 32 m coasted on a wrong velocity while its registrations were
-        # rejected, published valid 0.31-0.36 m off under a 0.22-0.24 m protection level, until
-        # the filter restarted on them.
         valid_kw["degraded"] = (pl > al or out.n_updates < ig.confirm_frames
-                                or out.fitness < ig.min_valid_fitness or out.disputed)
+                                or out.fitness < ig.min_valid_fitness)

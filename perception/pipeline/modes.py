@@ -25,6 +25,7 @@ sensor looks at can be inside the transition range while the origin is well outs
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -34,7 +35,7 @@ from perception.geometry import pose_error
 from perception.sensing.pointcloud import Subsystem
 from perception.pipeline.state import Mode
 
-__all__ = ["ModeEvent", "FrameVerdict", "ModeLogic"]
+__all__ = ["ModeEvent", "FrameVerdict", "ModeLogic", "corridor_constraint"]
 
 
 @dataclass(frozen=True)
@@ -185,3 +186,13 @@ class ModeLogic:
             self.go(t, Mode.SEARCH, f"loss of track: {verdict.reason}")
             return True
         return False
+
+
+def corridor_constraint(pc: PipelineConfig, R_nominal: npt.NDArray[np.float64]) -> Any:
+    """The mission's approach corridor as a PAH pose constraint (search acquires only inside it,
+    a track that leaves it is lost), or None when ``pipeline.use_corridor`` is off."""
+    if not pc.use_corridor:
+        return None
+    from perception.estimation.pah import PoseConstraint
+
+    return PoseConstraint.from_corridor(pc.corridor, R_nominal)

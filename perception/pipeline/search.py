@@ -12,33 +12,20 @@ import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from perception.estimation.registration import RegistrationResult, icp
 from perception.numeric import median
-from perception.pipeline.modes import FrameVerdict
+from perception.pipeline.modes import FrameVerdict, corridor_constraint
 from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.pipeline.tracking import MIN_REGISTRATION_POINTS, measurement_cov
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:
-    from perception.config import PipelineConfig
     from perception.pipeline.filter import PoseFilter
     from perception.pipeline.tridar import TriDAR
 
-FloatArray = npt.NDArray[np.float64]
-
-__all__ = ["SearchMode", "corridor_constraint"]
-
-
-def corridor_constraint(pc: PipelineConfig, R_nominal: FloatArray) -> Any:
-    """The approach corridor as a PAH pose constraint, or None when ``pipeline.use_corridor`` is off."""
-    if not pc.use_corridor:
-        return None
-    from perception.estimation.pah import PoseConstraint
-
-    return PoseConstraint.from_corridor(pc.corridor, R_nominal)
+__all__ = ["SearchMode"]
 
 
 class SearchMode:

@@ -129,7 +129,7 @@ import numpy.typing as npt
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix
-from perception.pipeline.search import corridor_constraint
+from perception.pipeline.modes import corridor_constraint
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:

@@ -19,7 +19,7 @@ from perception.config import PipelineConfig
 from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import cross_rows, fast_matrix_to_rotvec, pose_error, skew
 from perception.numeric import median
-from perception.pipeline.modes import FrameVerdict
+from perception.pipeline.modes import FrameVerdict, corridor_constraint
 from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.sensing.pointcloud import PointCloud
@@ -183,8 +183,6 @@ class TrackingMode:
         sight to the target origin of a large target can leave the cone while the port is on
         the axis.
         """
-        from perception.pipeline.search import corridor_constraint  # search imports this module
-
         tri = self.tri
         corridor = corridor_constraint(tri.pc, tri.R_nominal)
         if corridor is None or not tri.filter.initialized or tri.logic.mode != Mode.TRACKING:

@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
-from perception.pipeline.search import corridor_constraint
+from perception.pipeline.modes import corridor_constraint
 from perception.pipeline.tracking import measurement_cov
 from perception.sensing.pointcloud import PointCloud
 

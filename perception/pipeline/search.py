@@ -15,7 +15,7 @@ import numpy as np
 
 from perception.estimation.registration import RegistrationResult, icp
 from perception.numeric import median
-from perception.pipeline.modes import FrameVerdict, corridor_constraint
+from perception.pipeline.modes import FrameVerdict
 from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.pipeline.tracking import MIN_REGISTRATION_POINTS, measurement_cov
@@ -58,7 +58,7 @@ class SearchMode:
             tri.publisher.append(out)
             return
         t_ref = float(np.mean(cloud.times))
-        constraint = corridor_constraint(tri.pc, tri.R_nominal)
+        constraint = tri.corridor
         res, verdict, admitted, from_track, from_pah = self._register(cloud, t_ref, constraint)
         tri.last_result = res
         tri.stats.registration_time_s.append(res.time_s)

@@ -129,7 +129,6 @@ import numpy.typing as npt
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix
-from perception.pipeline.modes import corridor_constraint
 from perception.sensing.pointcloud import PointCloud
 
 if TYPE_CHECKING:
@@ -344,7 +343,7 @@ class SlideMonitor:
         # The mission's approach corridor, where configured, rules a turn out as it rules out a
         # twin (a box-like assembly flipped about an in-plane axis fits its front face as well,
         # port behind it: held at 104 deg, it kept a docking degraded at 3-8 m).
-        corridor = corridor_constraint(self.tri.pc, self.tri.R_nominal)
+        corridor = self.tri.corridor
         if corridor is not None and grid.size:
             grid = grid[corridor.admits_batch(np.stack([turned(float(x)) for x in grid]))]
         far: list[float] = []

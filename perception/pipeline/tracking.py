@@ -19,7 +19,7 @@ from perception.config import PipelineConfig
 from perception.estimation.registration import RegistrationResult, icp
 from perception.geometry import cross_rows, fast_matrix_to_rotvec, pose_error, skew
 from perception.numeric import median
-from perception.pipeline.modes import FrameVerdict, corridor_constraint
+from perception.pipeline.modes import FrameVerdict
 from perception.pipeline.publish import FrameOutput, lever, tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.sensing.pointcloud import PointCloud
@@ -184,7 +184,7 @@ class TrackingMode:
         the axis.
         """
         tri = self.tri
-        corridor = corridor_constraint(tri.pc, tri.R_nominal)
+        corridor = tri.corridor
         if corridor is None or not tri.filter.initialized or tri.logic.mode != Mode.TRACKING:
             return None
         R = tri.filter.pose_at(t_ref)[:3, :3]

@@ -35,7 +35,7 @@ from perception.estimation.registration import RegistrationResult, prepare_model
 from perception.geometry import check_rigid, fast_rotvec_to_matrix, make_T
 from perception.pipeline.bearing import BearingMode
 from perception.pipeline.filter import EgoMotion, PoseFilter
-from perception.pipeline.modes import ModeLogic
+from perception.pipeline.modes import ModeLogic, corridor_constraint
 from perception.pipeline.observability import ScanPlanner
 from perception.pipeline.publish import Publisher
 from perception.pipeline.search import SearchMode
@@ -134,6 +134,9 @@ class TriDAR:
             self.planner = ScanPlanner(self.model_target, self.sensor, self.model, self.pc.scan_plan,
                                        self.pc.icp.noise_floor_fraction)
         self.R_nominal = nominal_attitude(config, target)
+        #: The mission's approach corridor (PAH pose constraint) or None: built once, read by
+        #: search, tracking and the twin and turn monitors.
+        self.corridor = corridor_constraint(self.pc, self.R_nominal)
         self.frame_period = 1.0 / self.pc.frame_rate_hz
         self.max_pose_age = self.pc.loss_of_track_frames * self.frame_period + self.pc.tracking_latency_s + 1e-9
         self.rng = np.random.default_rng(0)

@@ -26,7 +26,6 @@ import numpy.typing as npt
 
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
-from perception.pipeline.modes import corridor_constraint
 from perception.pipeline.tracking import measurement_cov
 from perception.sensing.pointcloud import PointCloud
 
@@ -132,7 +131,7 @@ class TwinMonitor:
         # short having closed every twin at once.
         # The mission's approach corridor, where configured, rules out a twin as PAH's search
         # does (a plate flipped about an in-plane axis is the same solid, port behind it).
-        corridor = corridor_constraint(tri.pc, tri.R_nominal)
+        corridor = tri.corridor
         close = {i: a.T_sensor_target for i, a, s_alt in alts if s_alt >= score0 - ig.ambiguity_margin}
         close.update(unsettled)
         close = {i: Ti for i, Ti in close.items() if corridor is None or corridor.admits(Ti)}

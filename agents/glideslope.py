@@ -155,6 +155,16 @@ class GlideslopeController:
         a[2] = g.kv * (v[2] + v_des)
         return a
 
+    def executed(self, action: npt.ArrayLike, obs: npt.NDArray[np.floating]) -> None:
+        """Record ``action`` as the one flown instead of this controller's last (another
+        policy's, while the controller labels its states alongside it: DAgger in
+        :mod:`agents.pretrain`): the safety layer's and the bearing law's dead reckoning then
+        carry the thrust that was applied."""
+        thrust = np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[:3], -1.0, 1.0)
+        a = thrust * self.max_thrust / self._mass(obs)
+        self.safety.applied(a)
+        self.bearing.applied(a)
+
     def __call__(self, obs: npt.NDArray[np.floating]) -> npt.NDArray[np.float32]:
         a = self.accel_command(obs)
         mass = self._mass(obs)

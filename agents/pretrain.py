@@ -1,10 +1,11 @@
 """Behaviour-cloning warm start: a scripted controller's demonstrations, and a PPO policy fitted
-to them before PPO fine-tunes it (:class:`agents.training_config.PretrainConfig`)."""
+to them before PPO fine-tunes it, optionally with DAgger rounds (the policy flies, the controller
+labels the states it visits) (:class:`agents.training_config.PretrainConfig`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -12,7 +13,7 @@ import numpy.typing as npt
 from agents.training_config import PretrainConfig, TrainingConfig, env_args
 from perception.config import MissionConfig
 
-__all__ = ["Demonstrations", "collect_demonstrations", "pretrain_policy"]
+__all__ = ["Demonstrations", "collect_demonstrations", "dagger", "freeze_obs_stats", "pretrain_policy"]
 
 
 @dataclass
@@ -36,36 +37,57 @@ def collect_demonstrations(
     cfg: TrainingConfig, mission: MissionConfig, progress: bool = False
 ) -> Demonstrations:
     """Fly ``cfg.pretrain.controller`` on the training env (seeds ``cfg.seed + 10_000 + k``)."""
+    pre = cfg.pretrain
+    if pre is None:
+        raise ValueError("collect_demonstrations needs cfg.pretrain")
+    seeds = [cfg.seed + 10_000 + k for k in range(pre.episodes)]
+    return fly_labelled(cfg, mission, seeds, np.random.default_rng(cfg.seed), progress=progress)
+
+
+def fly_labelled(cfg: TrainingConfig, mission: MissionConfig, seeds: list[int], rng: np.random.Generator,
+                 policy: Callable[[npt.NDArray[np.float32]], npt.NDArray[np.float32]] | None = None,
+                 progress: bool = False, desc: str = "demonstrations") -> Demonstrations:
+    """Episodes of the training env at reset ``seeds``, every state labelled with the action of
+    ``cfg.pretrain.controller`` (clipped to ``[-1, 1]``).
+
+    The executed action is the label (``policy`` None: demonstrations) or ``policy(obs)`` of the
+    full observation (DAgger: the controller runs alongside on the same observations, so its
+    filters and phases follow the flight, and a controller with an ``executed(action, obs)``
+    method is told the action flown; one without believes its own was), plus Gaussian
+    ``action_noise`` from ``rng``.
+    """
     import gymnasium as gym
 
     from agents.controllers import make_controller
 
     pre = cfg.pretrain
-    if pre is None:
-        raise ValueError("collect_demonstrations needs cfg.pretrain")
+    assert pre is not None
     env_id, kwargs = env_args(cfg, mission)
     env = gym.make(env_id, **kwargs)
     ctl = make_controller(pre.controller, env.unwrapped.cfg)
-    rng = np.random.default_rng(cfg.seed)
     obs_l, act_l, rew_l, ep_l, outcomes = [], [], [], [], []
-    episodes = range(pre.episodes)
+    episodes: Any = range(len(seeds))
     if progress:
         from tqdm.auto import tqdm
 
-        episodes = tqdm(episodes, desc="demonstrations", unit="ep")
+        episodes = tqdm(episodes, desc=desc, unit="ep")
     try:
         for k in episodes:
             reset = getattr(ctl, "reset", None)
             if callable(reset):
                 reset()
-            obs, _ = env.reset(seed=cfg.seed + 10_000 + k)
+            obs, _ = env.reset(seed=seeds[k])
             while True:
                 label = np.clip(np.asarray(ctl(obs), dtype=np.float32), -1.0, 1.0)
-                act = label + pre.action_noise * rng.standard_normal(label.shape).astype(np.float32)
+                act = label if policy is None else np.asarray(policy(obs), dtype=np.float32)
+                act = act + pre.action_noise * rng.standard_normal(label.shape).astype(np.float32)
+                act = np.clip(act, -1.0, 1.0)
+                if policy is not None and callable(getattr(ctl, "executed", None)):
+                    ctl.executed(act, obs)
                 obs_l.append(obs)
                 act_l.append(label)
                 ep_l.append(k)
-                obs, r, term, trunc, info = env.step(np.clip(act, -1.0, 1.0))
+                obs, r, term, trunc, info = env.step(act)
                 rew_l.append(float(r))
                 if term or trunc:
                     outcomes.append(info["termination"] if term else "truncated")
@@ -74,6 +96,75 @@ def collect_demonstrations(
         env.close()
     return Demonstrations(np.asarray(obs_l, np.float32), np.asarray(act_l, np.float32),
                           np.asarray(rew_l), np.asarray(ep_l, np.int64), outcomes)
+
+
+def dagger(model: Any, vec: Any, demos: Demonstrations, cfg: TrainingConfig, mission: MissionConfig,
+           indices: npt.NDArray[np.intp] | None = None, progress: bool = False) -> list[dict[str, Any]]:
+    """``cfg.pretrain.dagger_rounds`` rounds of DAgger on a cloned PPO ``model`` (see
+    :class:`PretrainConfig`): each round the policy's mean action flies ``dagger_episodes``
+    episodes (reset seeds after the demonstrations'), the controller labels them, and the policy
+    mean is fitted to every labelled state so far. ``demos``: the cloning's demonstrations (the
+    policy's observation: ``indices`` of the full one, or all of it). Returns each round's
+    outcomes and final action error.
+    """
+    pre = cfg.pretrain
+    assert pre is not None
+    rng = np.random.default_rng([cfg.seed, 1])
+    obs, act = demos.obs, demos.actions
+
+    def act_of(o: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        x = o if indices is None else o[indices]
+        return np.asarray(model.predict(vec.normalize_obs(x), deterministic=True)[0], np.float32)
+
+    rounds = []
+    first = cfg.seed + 10_000 + pre.episodes
+    for r in range(pre.dagger_rounds):
+        seeds = [first + r * pre.dagger_episodes + k for k in range(pre.dagger_episodes)]
+        new = fly_labelled(cfg, mission, seeds, rng, policy=act_of, progress=progress,
+                           desc=f"DAgger round {r + 1}/{pre.dagger_rounds}")
+        new_obs = new.obs if indices is None else new.obs[:, indices]
+        if vec.norm_obs:
+            vec.obs_rms.update(new_obs.astype(np.float64))
+        obs, act = np.concatenate([obs, new_obs]), np.concatenate([act, new.actions])
+        loss = _fit(model.policy, vec.normalize_obs(obs.astype(np.float64)), act, None, pre,
+                    pre.dagger_epochs, cfg.seed + 1 + r)
+        rounds.append({"round": r + 1, "episodes": len(new.outcomes),
+                       "policy_docked": sum(o == "docked" for o in new.outcomes),
+                       "samples": len(obs), "action_mse": loss[0]})
+    return rounds
+
+
+def _fit(policy: Any, x_np: Any, y_np: Any, v_np: Any, pre: PretrainConfig, epochs: int,
+         seed: int) -> tuple[float, float]:
+    """Fit the policy mean to ``y_np`` (and the value head to ``v_np`` unless None) on the
+    normalised observations ``x_np``, ``epochs`` passes of Adam; the last pass's mean losses."""
+    import torch
+
+    x = torch.as_tensor(x_np, dtype=torch.float32)
+    y = torch.as_tensor(y_np, dtype=torch.float32)
+    v = None if v_np is None else torch.as_tensor(v_np, dtype=torch.float32)
+    opt = torch.optim.Adam(policy.parameters(), lr=pre.learning_rate)
+    gen = torch.Generator().manual_seed(seed)
+    policy.set_training_mode(True)
+    act_loss = val_loss = float("nan")
+    for _ in range(epochs):
+        order = torch.randperm(len(x), generator=gen)
+        a_sum = v_sum = 0.0
+        for start in range(0, len(x), pre.batch_size):
+            idx = order[start:start + pre.batch_size]
+            mean = policy.get_distribution(x[idx]).distribution.mean
+            loss = la = torch.nn.functional.mse_loss(mean, y[idx])
+            if v is not None:
+                lv = torch.nn.functional.mse_loss(policy.predict_values(x[idx]).flatten(), v[idx])
+                loss = la + 0.5 * lv
+                v_sum += float(lv.detach()) * len(idx)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            a_sum += float(la.detach()) * len(idx)
+        act_loss, val_loss = a_sum / len(x), (v_sum / len(x) if v is not None else float("nan"))
+    policy.set_training_mode(False)
+    return act_loss, val_loss
 
 
 def pretrain_policy(model: Any, vec: Any, demos: Demonstrations, pre: PretrainConfig, gamma: float,
@@ -109,34 +200,28 @@ def pretrain_policy(model: Any, vec: Any, demos: Demonstrations, pre: PretrainCo
         g = r_norm[i] if last else r_norm[i] + gamma * g
         targets[i] = g
     policy = model.policy
-    x = torch.as_tensor(vec.normalize_obs(obs), dtype=torch.float32)
-    y = torch.as_tensor(demos.actions, dtype=torch.float32)
-    v = torch.as_tensor(targets, dtype=torch.float32)
-    opt = torch.optim.Adam(policy.parameters(), lr=pre.learning_rate)
-    gen = torch.Generator().manual_seed(seed)
-    policy.set_training_mode(True)
-    act_loss = val_loss = float("nan")
-    for _ in range(pre.epochs):
-        order = torch.randperm(len(x), generator=gen)
-        a_sum = v_sum = 0.0
-        for start in range(0, len(x), pre.batch_size):
-            idx = order[start:start + pre.batch_size]
-            mean = policy.get_distribution(x[idx]).distribution.mean
-            value = policy.predict_values(x[idx]).flatten()
-            la = torch.nn.functional.mse_loss(mean, y[idx])
-            lv = torch.nn.functional.mse_loss(value, v[idx])
-            opt.zero_grad()
-            (la + 0.5 * lv).backward()
-            opt.step()
-            a_sum += float(la.detach()) * len(idx)
-            v_sum += float(lv.detach()) * len(idx)
-        act_loss, val_loss = a_sum / len(x), v_sum / len(x)
-    policy.set_training_mode(False)
+    act_loss, val_loss = _fit(policy, vec.normalize_obs(obs), demos.actions, targets, pre, pre.epochs, seed)
     with torch.no_grad():
         policy.log_std.fill_(pre.log_std)
     docked = sum(o == "docked" for o in demos.outcomes)
     return {
-        "controller": pre.controller, "episodes": len(demos.outcomes), "samples": len(x),
+        "controller": pre.controller, "episodes": len(demos.outcomes), "samples": len(demos.obs),
         "demo_docked": docked, "action_mse": act_loss, "value_mse": val_loss,
         "log_std": pre.log_std,
     }
+
+
+
+def freeze_obs_stats(vec: Any) -> None:
+    """Keep ``vec``'s (a VecNormalize) observation statistics where they are from now on: its
+    running mean and variance no longer update (``PretrainConfig.freeze_obs_stats``)."""
+    from stable_baselines3.common.running_mean_std import RunningMeanStd
+
+    class FrozenStats(RunningMeanStd):  # type: ignore[misc]
+        def update(self, arr: Any) -> None:
+            """Nothing: the statistics stay as they are."""
+
+    rms = vec.obs_rms
+    frozen = FrozenStats(shape=rms.mean.shape)
+    frozen.mean, frozen.var, frozen.count = rms.mean.copy(), rms.var.copy(), rms.count
+    vec.obs_rms = frozen

@@ -546,6 +546,15 @@ class SyncController:
         self.safety.applied(out[:3] * self.max_thrust / mass)
         return out.astype(np.float32)
 
+    def executed(self, action: npt.ArrayLike, obs: npt.NDArray[np.floating]) -> None:
+        """Record ``action`` (6,) as the one flown instead of this controller's last (another
+        policy's, while the controller labels its states alongside it: DAgger in
+        :mod:`agents.pretrain`): the rate predictor and the safety layer's dead reckoning then
+        carry what was applied."""
+        act = np.clip(np.asarray(action, dtype=np.float64).reshape(6), -1.0, 1.0)
+        self._alpha_applied = act[3:] * self.max_torque / self.inertia
+        self.safety.applied(act[:3] * self.max_thrust / self._mass(obs))
+
 
 def _allocate(a_ff: FloatArray, a_fb: FloatArray, limit: float) -> FloatArray:
     """``a_ff + k a_fb`` with the largest ``k`` in [0, 1] that keeps every axis within ``limit``.

@@ -46,7 +46,7 @@ from agents.campaign_spec import check_run_identity
 from agents.evaluation import evaluate
 from agents.outputs import atomic_write, check_folder, claim_folder, lock_folder
 from agents.policies import SB3Policy, load_policy, save_stats
-from agents.pretrain import Demonstrations, collect_demonstrations, pretrain_policy
+from agents.pretrain import Demonstrations, collect_demonstrations, dagger, freeze_obs_stats, pretrain_policy
 from agents.training_config import (
     CHECKPOINT_DIR,
     CONFIG_FILE,
@@ -303,7 +303,7 @@ def _validation_callback(cfg: TrainingConfig, mission: MissionConfig, out: Path,
         save_stats(vec, stats_path)
 
     return Validation(gym.make(env_id, **kwargs), vec, out, val.every_steps, val.episodes, val.seed,
-                      indices, save)
+                      indices, save, at_start=val.at_start)
 
 
 def _save_model(model: Any, path: Path) -> None:
@@ -362,11 +362,17 @@ def train(
         pretrain_stats = None
         if cfg.pretrain is not None:
             demos = collect_demonstrations(cfg, mission, progress=progress)
+            indices = None
             if cfg.observation_blocks is not None:  # the controller saw it all, the policy will not
                 from agents.observation_blocks import block_indices
 
-                demos = dataclasses.replace(demos, obs=demos.obs[:, block_indices(cfg.observation_blocks)])
+                indices = block_indices(cfg.observation_blocks)
+                demos = dataclasses.replace(demos, obs=demos.obs[:, indices])
             pretrain_stats = pretrain_policy(model, vec, demos, cfg.pretrain, gamma, cfg.seed)
+            if cfg.pretrain.dagger_rounds:
+                pretrain_stats["dagger"] = dagger(model, vec, demos, cfg, mission, indices, progress)
+            if cfg.pretrain.freeze_obs_stats:
+                freeze_obs_stats(vec)
         # The env and model were built: only now does the run folder appear.
         claim_folder(out, KIND)
         stack.enter_context(lock_folder(out))

@@ -42,21 +42,25 @@ class Validation(BaseCallback):  # type: ignore[misc]
         episodes: runs per validation; ``seed``: run ``k`` resets with ``seed + k``.
         indices: the observation blocks the policy sees (None: all).
         save: ``save(model, vec, model_path, stats_path)`` writes a policy.
+        at_start: validate the policy training starts from too (a row at 0 steps).
     """
 
     def __init__(self, env: Any, vec: Any, out: Path, every_steps: int, episodes: int, seed: int,
-                 indices: np.ndarray | None, save: Any) -> None:
+                 indices: np.ndarray | None, save: Any, at_start: bool = False) -> None:
         super().__init__()
         self.env, self.vec, self.out = env, vec, Path(out)
         self.every, self.episodes, self.seed = int(every_steps), int(episodes), int(seed)
         self.indices = indices
         self.save = save
+        self.at_start = bool(at_start)
         self.best = -1
         self.next_at = self.every
         self._t0 = time.perf_counter()
 
     def _on_training_start(self) -> None:
         self._t0 = time.perf_counter()
+        if self.at_start:
+            self.validate()
 
     def fly(self) -> dict[str, int]:
         """The current policy on the validation runs: how many ended docked, in a collision, or
@@ -79,6 +83,11 @@ class Validation(BaseCallback):  # type: ignore[misc]
             return True
         while self.next_at <= self.num_timesteps:
             self.next_at += self.every
+        self.validate()
+        return True
+
+    def validate(self) -> None:
+        """Fly the validation runs now; keep the policy if it is the best so far; log a row."""
         counts = self.fly()
         best = counts["docked"] > self.best
         if best:
@@ -93,4 +102,3 @@ class Validation(BaseCallback):  # type: ignore[misc]
                 w.writerow(COLUMNS)
             w.writerow([self.num_timesteps, f"{time.perf_counter() - self._t0:.6g}", self.episodes,
                         counts["docked"], counts["collision"], counts["other"], int(best)])
-        return True

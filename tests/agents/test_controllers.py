@@ -65,6 +65,44 @@ def test_sync_docks_tumbling_target_on_truth() -> None:
     assert ctrl.phase == "close"
 
 
+@pytest.mark.parametrize(("env_id", "make"), [("TriDAR/TumblingTarget-v0", SyncController),
+                                             ("TriDAR/FinalApproach-v0", GlideslopeController)])
+def test_a_controller_told_the_action_flown_labels_as_if_it_had_flown_it(env_id, make) -> None:
+    """``executed``: told its own action, a controller's labels are bitwise those of its own
+    flight; told another action (a learner's, DAgger), its next label follows what was flown."""
+    env = gym.make(env_id, perception="truth")
+    cfg = env.unwrapped.cfg
+    own, told, other = make(cfg), make(cfg), make(cfg)
+    obs, _ = env.reset(seed=5)
+    labels_own, labels_told = [], []
+    for _ in range(40):
+        a = own(obs)
+        b = told(obs)
+        told.executed(b, obs)
+        labels_own.append(a)
+        labels_told.append(b)
+        obs, *_ = env.step(a)
+    assert np.array_equal(np.stack(labels_own), np.stack(labels_told))
+    # Another action flown (a learner's): the controller carries what was flown, not its label.
+    obs, _ = env.reset(seed=5)
+    ctl = make(cfg)
+    flown = -ctl(obs)
+    ctl.executed(flown, obs)
+    np.testing.assert_allclose(ctl.safety._a_prev, flown[:3] * ctl.max_thrust / ctl._mass(obs))
+    if isinstance(ctl, SyncController):
+        np.testing.assert_allclose(ctl._alpha_applied, flown[3:] * ctl.max_torque / ctl.inertia)
+        # Synchronised, the relative-rate predictor carries the torque applied: told another
+        # torque, the next label differs from that of a controller that believes its own.
+        ctl, other = make(cfg), make(cfg)
+        ctl.phase = other.phase = "sync"
+        o = _synced_obs(ctl, np.array([0.0, 0.0, 0.05]), np.zeros(3))
+        for _ in range(2):
+            a = ctl(o)
+            other(o)
+        ctl.executed(-a, o)
+        assert not np.array_equal(ctl(o), other(o))
+
+
 # ---------------------------------------------------------------------- the laws' pieces
 def test_lqr_model_is_cw_rotated_into_the_docking_frame() -> None:
     cfg = load_config("final_approach")

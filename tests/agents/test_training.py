@@ -274,6 +274,56 @@ def test_behaviour_cloning_warm_start_imitates_the_controller(tmp_path):
     assert PretrainConfig(**pre).controller == "glideslope"
 
 
+def test_dagger_rounds_fit_the_policy_to_the_controller_on_its_own_states(tmp_path):
+    """DAgger: on states the trained policy visits itself (fresh seeds, the controller labelling
+    alongside), its actions are nearer the controller's after DAgger rounds than after plain
+    cloning of the same demonstrations for as many passes in all; every round's states join the
+    data set. (Measured: squared action error 0.0052 after three rounds, 0.011-0.015 after plain
+    cloning of 120-160 passes.)"""
+    from agents.pretrain import fly_labelled
+    from agents.training import validate_training
+
+    pre = {"episodes": 2, "action_noise": 0.05, "epochs": 40, "learning_rate": 3e-3, "log_std": -2.0}
+    base = {**TINY, "vec_env": "dummy", "total_timesteps": 1, "checkpoint_every_steps": None,
+            "config": {"env__frame_skip": 5, "env__initial__range_m": 6.0}}
+    plain_cfg = TrainingConfig(**{**base, "pretrain": {**pre, "epochs": 40 + 3 * 40}})
+    dag_cfg = TrainingConfig(**{**base, "pretrain": {**pre, "dagger_rounds": 3, "dagger_episodes": 3,
+                                                      "dagger_epochs": 40}})
+    plain_dir = train(plain_cfg, tmp_path / "plain", progress=False).out_dir
+    dag_dir = train(dag_cfg, tmp_path / "dagger", progress=False).out_dir
+    stats = json.loads((dag_dir / "pretrain.json").read_text())
+    rounds = stats["dagger"]
+    assert [r["round"] for r in rounds] == [1, 2, 3] and all(r["episodes"] == 3 for r in rounds)
+    assert stats["samples"] < rounds[0]["samples"] < rounds[1]["samples"] < rounds[2]["samples"]
+    mission = validate_training(plain_cfg)
+
+    def error_on_own_states(run_dir) -> float:
+        policy = load_policy(run_dir)
+        flown = fly_labelled(plain_cfg, mission, [777, 778, 779], np.random.default_rng(0), policy=policy)
+        return float(np.mean((np.stack([policy(o) for o in flown.obs]) - flown.actions) ** 2))
+
+    assert error_on_own_states(dag_dir) < 0.7 * error_on_own_states(plain_dir)
+
+
+def test_frozen_observation_statistics_stay_as_the_cloning_left_them(tmp_path):
+    """freeze_obs_stats: PPO's rollouts leave the saved observation statistics as they were when
+    the cloning ended; without it they move."""
+    from agents.policies import load_stats
+
+    pre = {"episodes": 1, "epochs": 2}
+    base = {**TINY, "vec_env": "dummy", "checkpoint_every_steps": None,
+            "config": {"env__frame_skip": 5, "env__initial__range_m": 6.0}}
+
+    def stats(name: str, steps: int, freeze: bool) -> np.ndarray:
+        cfg = TrainingConfig(**{**base, "total_timesteps": steps,
+                                "pretrain": {**pre, "freeze_obs_stats": freeze}})
+        return load_stats(train(cfg, tmp_path / name, progress=False).out_dir / "vecnormalize.npz")["obs_mean"]
+
+    cloned = stats("cloned", 1, True)
+    np.testing.assert_array_equal(stats("frozen", 512, True), cloned)
+    assert not np.array_equal(stats("moving", 512, False), cloned)
+
+
 def test_pretrain_is_only_for_ppo_and_names_a_known_controller():
     from agents.training import validate_training
     from perception.config import ConfigError

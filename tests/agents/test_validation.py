@@ -81,3 +81,20 @@ def test_validating_does_not_change_what_is_learnt(run, tmp_path):
     a, b = _weights(run / "model.zip"), _weights(plain / "model.zip")
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not (plain / "validation.csv").exists() and not (plain / "best_model.zip").exists()
+
+
+def test_at_start_validates_the_policy_training_starts_from(tmp_path):
+    """validation.at_start: a row at 0 steps, and on a tie that starting policy is the best kept
+    (not the one after the first update)."""
+    out = tmp_path / "run"
+    train(TrainingConfig(**{**RUN, "validation": {**RUN["validation"], "at_start": True}}), out, progress=False)
+    with (out / "validation.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["timesteps"]) for r in rows] == [0, 32, 64, 96]
+    assert [int(r["best"]) for r in rows] == [1, 0, 0, 0]
+    # The 32-step checkpoint is still the starting policy (the first update follows the first
+    # 32-step rollout); the 64-step one has been updated.
+    best, start, later = (_weights(out / "best_model.zip"), _weights(out / "checkpoints/model_32_steps.zip"),
+                          _weights(out / "checkpoints/model_64_steps.zip"))
+    assert all(torch.equal(best[k], start[k]) for k in best)
+    assert not all(torch.equal(best[k], later[k]) for k in best)

@@ -211,7 +211,6 @@ def pretrain_policy(model: Any, vec: Any, demos: Demonstrations, pre: PretrainCo
     }
 
 
-
 def freeze_obs_stats(vec: Any) -> None:
     """Keep ``vec``'s (a VecNormalize) observation statistics where they are from now on: its
     running mean and variance no longer update (``PretrainConfig.freeze_obs_stats``)."""

@@ -156,10 +156,10 @@ class GlideslopeController:
         return a
 
     def executed(self, action: npt.ArrayLike, obs: npt.NDArray[np.floating]) -> None:
-        """Record ``action`` as the one flown instead of this controller's last (another
-        policy's, while the controller labels its states alongside it: DAgger in
-        :mod:`agents.pretrain`): the safety layer's and the bearing law's dead reckoning then
-        carry the thrust that was applied."""
+        """Record ``action`` as the one flown (the controller's own, at the end of each call; or
+        another policy's, while the controller labels its states alongside it: DAgger in
+        :mod:`agents.pretrain`): the safety layer's and the bearing law's dead reckoning carry
+        the thrust that was applied."""
         thrust = np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[:3], -1.0, 1.0)
         a = thrust * self.max_thrust / self._mass(obs)
         self.safety.applied(a)
@@ -173,8 +173,7 @@ class GlideslopeController:
             thrust = np.clip(thrust, -1.0, 1.0)
         else:  # an avoidance (or the bearing law) keeps its direction at the thrust limit
             thrust = thrust / max(1.0, float(np.max(np.abs(thrust))))
-        self.safety.applied(thrust * self.max_thrust / mass)
-        self.bearing.applied(thrust * self.max_thrust / mass)
+        self.executed(thrust, obs)
         if not self.six_dof:
             return thrust.astype(np.float32)
         torque = np.zeros(3)

@@ -112,9 +112,10 @@ def dagger(model: Any, vec: Any, demos: Demonstrations, cfg: TrainingConfig, mis
     rng = np.random.default_rng([cfg.seed, 1])
     obs, act = demos.obs, demos.actions
 
+    from agents.validation import mean_action
+
     def act_of(o: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        x = o if indices is None else o[indices]
-        return np.asarray(model.predict(vec.normalize_obs(x), deterministic=True)[0], np.float32)
+        return mean_action(model, vec, o, indices)
 
     rounds = []
     first = cfg.seed + 10_000 + pre.episodes

@@ -542,14 +542,13 @@ class SyncController:
         # isotropic chaser inertia: w x (I w) vanishes, kept for clarity of the model
         torque = self.inertia * alpha + np.cross(w, self.inertia * w)
         out = np.concatenate([saturate(thrust), saturate(torque / self.max_torque)])
-        self._alpha_applied = out[3:] * self.max_torque / self.inertia
-        self.safety.applied(out[:3] * self.max_thrust / mass)
+        self.executed(out, obs)
         return out.astype(np.float32)
 
     def executed(self, action: npt.ArrayLike, obs: npt.NDArray[np.floating]) -> None:
-        """Record ``action`` (6,) as the one flown instead of this controller's last (another
-        policy's, while the controller labels its states alongside it: DAgger in
-        :mod:`agents.pretrain`): the rate predictor and the safety layer's dead reckoning then
+        """Record ``action`` (6,) as the one flown (the controller's own, at the end of each
+        call; or another policy's, while the controller labels its states alongside it: DAgger
+        in :mod:`agents.pretrain`): the rate predictor and the safety layer's dead reckoning
         carry what was applied."""
         act = np.clip(np.asarray(action, dtype=np.float64).reshape(6), -1.0, 1.0)
         self._alpha_applied = act[3:] * self.max_torque / self.inertia

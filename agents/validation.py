@@ -23,12 +23,19 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["BEST_MODEL_FILE", "BEST_STATS_FILE", "COLUMNS", "VALIDATION_FILE", "Validation"]
+__all__ = ["BEST_MODEL_FILE", "BEST_STATS_FILE", "COLUMNS", "VALIDATION_FILE", "Validation", "mean_action"]
 
 BEST_MODEL_FILE = "best_model.zip"
 BEST_STATS_FILE = "best_model_vecnormalize.npz"
 VALIDATION_FILE = "validation.csv"
 COLUMNS = ("timesteps", "wall_s", "episodes", "docked", "collision", "other", "best")
+
+
+def mean_action(model: Any, vec: Any, obs: np.ndarray, indices: np.ndarray | None) -> np.ndarray:
+    """A training model's deterministic action for the full observation ``obs``: the blocks it
+    sees (``indices``, None: all), normalised by ``vec`` (its VecNormalize)."""
+    x = obs if indices is None else obs[indices]
+    return np.asarray(model.predict(vec.normalize_obs(x), deterministic=True)[0], dtype=np.float32)
 
 
 class Validation(BaseCallback):  # type: ignore[misc]
@@ -69,8 +76,7 @@ class Validation(BaseCallback):  # type: ignore[misc]
         for k in range(self.episodes):
             obs, _ = self.env.reset(seed=self.seed + k)
             while True:
-                o = obs if self.indices is None else obs[self.indices]
-                action, _ = self.model.predict(self.vec.normalize_obs(o), deterministic=True)
+                action = mean_action(self.model, self.vec, obs, self.indices)
                 obs, _, term, trunc, info = self.env.step(action)
                 if term or trunc:
                     cause = info.get("termination") or "truncated"

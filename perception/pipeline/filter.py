@@ -61,6 +61,14 @@ __all__ = ["EgoMotion", "PoseFilter", "RangeFilter", "UpdateResult"]
 #: 99.9% quantile of chi-square with 6 degrees of freedom: innovations beyond it are rejected.
 CHI2_6_999 = 22.457744484825323
 
+#: A measurement direction with more variance than this [m^2 or rad^2] is one the registration
+#: left unobserved (ICP gives those 1e6, honest ones are far below 1).
+UNOBSERVED_VARIANCE = 1.0e2
+
+#: Pose and rate indices of the error state, in the order of a (dp, dtheta) 6-vector.
+_POSE_IDX = np.array([0, 1, 2, 6, 7, 8])
+_RATE_IDX = np.array([3, 4, 5, 9, 10, 11])
+
 
 def _wn_block(dt: float, q: float) -> FloatArray:
     """Discrete white-noise-acceleration covariance (2x2) per axis for spectral density ``q``."""
@@ -366,6 +374,20 @@ class PoseFilter:
         if not np.isfinite(d2) or d2 > self.gate:
             return UpdateResult(False, d2)
         K = np.linalg.solve(S, H @ self.P).T
+        lam, V = np.linalg.eigh(0.5 * (cov_pose + cov_pose.T))
+        N = V[:, lam > UNOBSERVED_VARIANCE]
+        if N.size:
+            # A direction this registration leaves unobserved is not updated, nor its rate: no
+            # gain along it (the Joseph form below is exact for any gain, so its variance stays
+            # the prior's). The optimal gain would put a little of the other directions'
+            # information on it; with the null direction estimated a few degrees differently
+            # each frame, a run of degenerate registrations (a cylinder bus's roll) summed that
+            # into a roll pinned to a fraction of a degree that no frame had observed, and the
+            # track flew a false roll rate published valid.
+            B = np.zeros((12, 2 * N.shape[1]))
+            B[_POSE_IDX, :N.shape[1]] = N
+            B[_RATE_IDX, N.shape[1]:] = N
+            K = K - B @ (B.T @ K)
         dx = K @ z
         self.p = self.p + dx[0:3]
         self.u = self.u + dx[3:6]

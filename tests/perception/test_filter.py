@@ -317,3 +317,56 @@ def test_position_floor_keeps_a_shared_slide_offset_inside_the_protection_level(
     assert not dP.any()
     with pytest.raises(ValueError, match="floor_position"):
         f.floor_position([np.nan, 0.0, 1.0], 0.4)
+
+
+def _roll_null_cov(o: np.ndarray, a: np.ndarray, tilt_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """A registration covariance that leaves the roll about the axis along z through ``a``
+    unobserved (1e6 along it, as ICP reports it), its null direction estimated ``tilt_rad`` off
+    in a random direction (ICP's null vector moves a little from frame to frame); 1 cm and
+    0.2 deg on the observed directions. Twist about the target origin ``o``."""
+    axis = Rotation.from_rotvec(tilt_rad * np.array([*rng.normal(size=2), 0.0]) / np.sqrt(2.0)).apply([0, 0, 1.0])
+    u = np.concatenate([np.cross(axis, o - a), axis])
+    cov = np.diag([1e-4] * 3 + [np.radians(0.2) ** 2] * 3)
+    return cov + 1e6 * np.outer(u, u) / float(u @ u)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_direction_no_registration_observes_is_never_pinned(seed: int) -> None:
+    """Registrations that each leave a bus's roll unobserved (null vectors a few degrees apart,
+    the roll following whatever the prediction said) leave the roll and its rate as uncertain as
+    they started, however many there are, while everything they observe converges; one
+    registration that pins the roll pins it. (Fused optimally, 20 such frames pinned the roll to
+    a fraction of a degree and the roll rate to under a degree per second, on no evidence.)"""
+    rng = np.random.default_rng(seed)
+    o = np.array([0.3, -0.2, 30.0])
+    a = o + np.array([1.2, 0.4, 0.0])  # the roll axis passes 1.3 m from the target origin
+    f = PoseFilter(accel_psd=1e-6, angacc_psd=1e-8, init_rate_sigma=np.radians(6.0))
+    u_true = np.concatenate([np.cross([0, 0, 1.0], o - a), [0, 0, 1.0]])
+    u_true /= np.linalg.norm(u_true)
+    idx = [0, 1, 2, 6, 7, 8]
+    rate_idx = [3, 4, 5, 9, 10, 11]
+    for k in range(40):
+        t = 0.2 * k
+        # the registration rolls 0.5 deg a frame about the bus axis (a drift the scans allow)
+        roll = make_T(Rotation.from_rotvec([0, 0, np.radians(0.5 * k)]).as_matrix())
+        Tm = make_T(None, a) @ roll @ make_T(None, o - a + rng.normal(0, 0.01, 3))
+        cov = _roll_null_cov(o, a, np.radians(3.0), rng)
+        if k == 0:
+            f.initialize(t, Tm, cov)
+            prior = float(u_true @ f.P[np.ix_(idx, idx)] @ u_true)
+            continue
+        assert f.update(t, Tm, cov).accepted
+    roll_var = float(u_true @ f.P[np.ix_(idx, idx)] @ u_true)
+    rate_var = float(u_true @ f.P[np.ix_(rate_idx, rate_idx)] @ u_true)
+    assert roll_var >= 0.5 * prior  # still unknown (about 1e5 m^2 + rad^2 along it)
+    assert np.sqrt(rate_var) >= 0.9 * np.radians(6.0) / np.linalg.norm(u_true[3:])
+    # what the registrations observe is known better than one registration says
+    lam, V = np.linalg.eigh(cov)
+    Pp = f.P[np.ix_(idx, idx)]
+    for k in np.flatnonzero(lam < 1.0):
+        assert float(V[:, k] @ Pp @ V[:, k]) < lam[k]
+    # one registration that pins the roll (where the last ones had it) pins it
+    full = np.diag([1e-4] * 3 + [np.radians(0.2) ** 2] * 3)
+    roll = make_T(Rotation.from_rotvec([0, 0, np.radians(20.0)]).as_matrix())
+    assert f.update(8.0, make_T(None, a) @ roll @ make_T(None, o - a), full).accepted
+    assert float(u_true @ f.P[np.ix_(idx, idx)] @ u_true) < np.radians(1.0) ** 2

@@ -65,8 +65,9 @@ def test_a_roll_the_scans_cannot_pin_is_not_published_valid(monkeypatch, monitor
     """At 28 m the boom gives a few returns a frame at most: a track that PAH started 60 deg off
     in roll stays there (the rim's facets give the registration a confident, wrong roll). Without
     the turn monitor its port is published valid 0.4 m off under a protection level of
-    centimetres; with it no frame is valid and wrong (degraded while the turn is open, or moved to
-    the right roll)."""
+    centimetres; with it no frame is valid and wrong (degraded while the turn is open, moved to
+    the right roll, or, in the first frames, before the first probe, under a bound the
+    registrations' unobserved roll has kept wide enough to cover it)."""
     cfg = _config(monitor)
     tri, tracked, err = _fly_rolled(monkeypatch, cfg, 28.0, 60.0, 80)
     assert len(tracked) >= 40
@@ -74,8 +75,10 @@ def test_a_roll_the_scans_cannot_pin_is_not_published_valid(monkeypatch, monitor
     if monitor:
         assert not misleading.any()
         assert tri.slides.turns > 0
-        # each frame is either degraded or right
-        assert all(sv.valid.degraded or e < 0.05 for e, sv in zip(err, tracked))
+        # each frame is degraded, right, or (before the monitor's first probe) inside its bound
+        first_probe = 1.0 + tracked[0].t
+        assert all(sv.valid.degraded or e < 0.05 or (sv.t <= first_probe + 1.0 and e < sv.protection_level)
+                   for e, sv in zip(err, tracked))
     else:
         assert np.median(err) > 0.3
         assert misleading.mean() > 0.5  # valid 0.47 m off under ~0.15 m, from 6 s on

@@ -45,7 +45,10 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     otherwise (invalid or degraded, with a fix): brake the closing speed to zero and hold; when no
     healthy pose has come back within ``hold_s`` (a flicker of the flags is not worth a retreat),
     or at once when the chaser was inside ``commit_range_m`` (an abort), retreat along the approach
-    axis to the hold point. Never close in. Retreating, the desired opening rate along the axis is
+    axis to the hold point. Never close in. A retreat resumes on a healthy pose only once the port
+    is at least ``commit_range_m`` ahead again: on Rendezvous-v0 a pose turned degraded 7 cm from
+    contact, the abort braked to 0.027 m/s, the pose came back healthy 1 s later 2.6 cm out, and
+    the resumed approach touched at 0.049 m/s, under the envelope's 0.05 (a collision). Retreating, the desired opening rate along the axis is
     ``clip(k_hold (s_hold - s), 0, v_retreat)`` (``s`` the distance along
     the axis: dock to port along the docking axis for glideslope/LQR; centre of mass to centre of
     mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed
@@ -297,7 +300,10 @@ class CollisionAvoidance:
             self._healthy += 1
             # the track proves itself for as long as it was lost, up to resume_s
             prove = self.g.resume_s if self.retreating else min(self.g.resume_s, self._lost_s)
-            if self._avoided and self._healthy * self.dt < prove - 1e-9:
+            # a retreat resumes no closer than the commit range: from nearer, the approach cannot
+            # reach the capture speed before contact (module docstring)
+            inside = self.retreating and self.port(w)[0][2] < self.g.commit_range_m
+            if self._avoided and (self._healthy * self.dt < prove - 1e-9 or inside):
                 self.mode = "avoid"  # hold on fresh fixes until then
             else:
                 self.mode = "nominal"

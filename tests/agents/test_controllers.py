@@ -791,6 +791,37 @@ def test_in_the_commit_range_a_clean_loss_or_a_capturable_degraded_pose_coasts(m
             assert act[2] < -0.1
 
 
+@pytest.mark.parametrize("make", [GlideslopeController, LQRController])
+def test_an_abort_resumes_only_outside_the_commit_range(make: type) -> None:
+    """Degraded 0.1 m from contact with the port not bounded inside the capture tolerance: abort.
+    A healthy pose back while the port is still inside the 0.4 m commit range keeps backing away
+    (resumed there, Rendezvous-v0 touched at 0.049 m/s, under the 0.05 m/s envelope: a
+    collision); outside it, after the track has proved itself, the approach resumes."""
+    cfg = load_config("final_approach", env__perception="truth")
+    ctrl = make(cfg)
+    g, dt = ctrl.safety.g, ctrl.safety.dt
+    healthy = _approach_obs(0.1, 0.07, 0.03)
+    healthy[S["protection_level"]] = 0.06
+    for _ in range(3):
+        ctrl(healthy)
+    bad = healthy.copy()
+    bad[S["valid"]][7] = 1.0
+    bad[S["protection_level"]] = 0.085
+    ctrl(bad)
+    assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating
+    for z in (0.05, 0.2, 0.39):  # healthy again, but still inside the commit range
+        back = _approach_obs(z, 0.0, 0.0)
+        for _ in range(round(3 * g.resume_s / dt)):
+            act = ctrl(back)
+        assert ctrl.safety.mode == "avoid" and ctrl.safety.retreating, z
+        assert act[2] < 0.0  # opening towards the hold point, not closing
+    out = _approach_obs(g.commit_range_m + 0.05, 0.0, 0.0)
+    ctrl(out)
+    for _ in range(round(g.resume_s / dt)):
+        ctrl(out)
+    assert ctrl.safety.mode == "nominal"
+
+
 def test_sync_brakes_on_a_degraded_pose_close_in() -> None:
     cfg = load_config("tumbling_target", env__perception="truth")
     ctrl = SyncController(cfg)

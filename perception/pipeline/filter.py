@@ -398,6 +398,17 @@ class PoseFilter:
         self.P = 0.5 * (self.P + self.P.T)
         return UpdateResult(True, d2)
 
+    def rate_doubt(self, T_meas: FloatArray, since_t: float) -> FloatArray:
+        """The velocity [m/s] and angular-rate [rad/s] errors, (6,), that alone would explain how
+        far the pose ``T_meas`` (target origin, taken at the filter's time) is from the
+        filter's, built up since ``since_t`` [s] (its last accepted update): what a restart on
+        registrations the gate rejected should doubt in the rates it keeps."""
+        T_ref, _ = self._to_ref(np.asarray(T_meas, dtype=np.float64), np.zeros((6, 6)))
+        dt = max(self.t - float(since_t), 1e-3)
+        dp = T_ref[:3, 3] - self.p
+        dth = fast_matrix_to_rotvec(T_ref[:3, :3] @ self.R.T)
+        return np.concatenate([dp, dth]) / dt
+
     def floor_velocity(self, axis: npt.ArrayLike, sigma: float) -> None:
         """Raise the velocity variance along ``axis`` (sensor coordinates) to at least ``sigma**2``
         [(m/s)^2], as process noise injected now (the other directions and the cross terms are

@@ -279,6 +279,14 @@ class TrackingMode:
         v_origin = f.target_state()[1]
         g = f.copy()
         (t0, T0, C0), *rest = self.rejected
+        # The rates are kept, but not as sure as before: a wrong rate is one reason the gate
+        # rejects (a cylinder bus's track took a 1.5 deg/s false roll rate from a slow basin
+        # change; five restarts that kept it with its small covariance each drifted the roll
+        # off again, published valid 20 deg off). Their covariance grows by the rate error that
+        # alone would explain the newest rejected registration since the last accepted one.
+        # (After the rejected registrations have been checked against one another with the
+        # rates as they were: doubted first, any two would pass.)
+        doubt = f.rate_doubt(self.rejected[-1][1], self.tri.last_pose_t)
         g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w)
         P = g.P.copy()
         for rates in (slice(3, 6), slice(9, 12)):
@@ -287,6 +295,8 @@ class TrackingMode:
         for t_k, T_k, C_k in rest:
             if not g.update(t_k, T_k, C_k).accepted:
                 return None
+        g.P[3:6, 3:6] += np.outer(doubt[:3], doubt[:3])
+        g.P[9:12, 9:12] += np.outer(doubt[3:], doubt[3:])
         return g
 
     def after_loss(self, lost: bool, t: float) -> None:

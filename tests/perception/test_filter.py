@@ -370,3 +370,46 @@ def test_a_direction_no_registration_observes_is_never_pinned(seed: int) -> None
     roll = make_T(Rotation.from_rotvec([0, 0, np.radians(20.0)]).as_matrix())
     assert f.update(8.0, make_T(None, a) @ roll @ make_T(None, o - a), full).accepted
     assert float(u_true @ f.P[np.ix_(idx, idx)] @ u_true) < np.radians(1.0) ** 2
+
+
+def test_a_restart_on_rejected_registrations_doubts_the_rates_it_keeps() -> None:
+    """A track sure of a false 1.5 deg/s roll rate (a slow basin change taught it) about a still
+    target: the registrations are rejected, and the filter restarted on them keeps the rate but
+    as doubtful as the rejected registration says (the rate error that alone explains it); the
+    following registrations then take it out in a few frames. Kept as sure as it was, every
+    restart drifted the roll off again."""
+    from types import SimpleNamespace
+
+    from perception.pipeline.tracking import TrackingMode
+
+    w_false = np.radians(1.5)
+    T = make_T(None, [0.2, -0.1, 20.0])
+    cov = np.diag([1e-6] * 3 + [np.radians(0.05) ** 2] * 3)
+
+    def restarted(doubt: bool) -> float:
+        f = PoseFilter(accel_psd=1e-8, angacc_psd=1e-10)
+        f.initialize(0.0, T, cov, velocity=np.zeros(3), omega=[0.0, 0.0, w_false])
+        f.P[3:6, 3:6] = np.eye(3) * 1e-8
+        f.P[9:12, 9:12] = np.eye(3) * 1e-10
+        rejected = []
+        for t in (0.4, 0.6, 0.8):  # the still target's pose, 0.6-1.2 deg from the prediction
+            assert not f.update(t, T, cov).accepted
+            rejected.append((t, T, cov))
+        d = f.rate_doubt(T, 0.0)
+        np.testing.assert_allclose(d[3:], [0.0, 0.0, -w_false], atol=np.radians(0.01))
+        np.testing.assert_allclose(d[:3], 0.0, atol=1e-9)
+        tm = TrackingMode.__new__(TrackingMode)
+        tm.tri = SimpleNamespace(last_pose_t=0.0)
+        tm.rejected = rejected[-2:]
+        g = tm._restart_on_rejected(f)
+        assert g is not None
+        if doubt:
+            assert np.sqrt(g.P[11, 11]) >= 0.9 * w_false  # as doubtful as the rate error
+        else:
+            g.P[9:12, 9:12] = f.P[9:12, 9:12]  # the restart as it was: the rate kept, as sure
+        for k in range(1, 16):  # frames of the still target
+            g.update(0.8 + 0.2 * k, T, cov)
+        return abs(float(g.w[2]))
+
+    assert restarted(doubt=True) < np.radians(0.1)
+    assert restarted(doubt=False) > np.radians(1.0)

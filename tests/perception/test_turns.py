@@ -96,8 +96,10 @@ def test_at_11_m_a_right_roll_turns_healthy_and_a_wrong_one_stays_degraded(monke
     healthy = np.array([sv.valid.pose and not sv.valid.degraded for sv in tracked])
     if roll_deg == 0.0:
         # the boom's few returns pin the roll at most probes: healthy much of the time (the
-        # probes that find a turn alike hold it degraded again for a while), within 2 cm
-        assert healthy[len(healthy) // 3:].mean() > 0.3
+        # probes that find a turn alike hold it degraded again for a while: one hold of 10-20 s
+        # falls early or late with the BLAS's rounding, 37-62 % healthy over the 20 s measured
+        # on two BLAS kernels), within 2 cm
+        assert healthy.mean() > 0.3
         assert np.all(err[healthy] < 0.02)
     else:
         assert tri.slides.turns > 0

@@ -48,7 +48,8 @@ its axial rate is blended in; the lateral ones stay dead-reckoned.
     axis to the hold point. Never close in. A retreat resumes on a healthy pose only once the port
     is at least ``commit_range_m`` ahead again: on Rendezvous-v0 a pose turned degraded 7 cm from
     contact, the abort braked to 0.027 m/s, the pose came back healthy 1 s later 2.6 cm out, and
-    the resumed approach touched at 0.049 m/s, under the envelope's 0.05 (a collision). Retreating, the desired opening rate along the axis is
+    the resumed approach touched at 0.049 m/s, under the envelope's 0.05 (a collision).
+    Retreating, the desired opening rate along the axis is
     ``clip(k_hold (s_hold - s), 0, v_retreat)`` (``s`` the distance along
     the axis: dock to port along the docking axis for glideslope/LQR; centre of mass to centre of
     mass for sync, whose axis is the line to the target's centre of mass), across it zero; a speed

@@ -274,8 +274,9 @@ class TrackingMode:
 
     def _restart_on_rejected(self, f: PoseFilter) -> PoseFilter | None:
         """A filter restarted on the registrations the gate rejected in a row (keeping ``f``'s
-        rates and their covariance: the motion between the frames is the track's), if each of
-        them passes the gate of the one restarted on those before it; else None."""
+        rates: the motion between the frames is the track's; their covariance grown by the rate
+        error that alone would explain the rejection), if each of them passes the gate of the
+        one restarted on those before it; else None."""
         v_origin = f.target_state()[1]
         g = f.copy()
         (t0, T0, C0), *rest = self.rejected

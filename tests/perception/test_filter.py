@@ -335,8 +335,8 @@ def test_a_direction_no_registration_observes_is_never_pinned(seed: int) -> None
     """Registrations that each leave a bus's roll unobserved (null vectors a few degrees apart,
     the roll following whatever the prediction said) leave the roll and its rate as uncertain as
     they started, however many there are, while everything they observe converges; one
-    registration that pins the roll pins it. (Fused optimally, 20 such frames pinned the roll to
-    a fraction of a degree and the roll rate to under a degree per second, on no evidence.)"""
+    registration that pins the roll pins it. (Fused optimally, these 40 frames brought the roll's
+    variance from 1e6 down to 0.0007-0.0012, on no evidence.)"""
     rng = np.random.default_rng(seed)
     o = np.array([0.3, -0.2, 30.0])
     a = o + np.array([1.2, 0.4, 0.0])  # the roll axis passes 1.3 m from the target origin

@@ -161,12 +161,12 @@ class Publisher:
             valid_kw["range_rate"] = True
             blocks += [slice(3, 6), slice(9, 12)]
         # The registrations' correlated error does not average down. Two covariances, as ARAIM
-        # keeps them: the published one adds the typical correlated error (accuracy_bias_*; along
-        # the line of sight at least the time of flight's range bias: the state vector's NEES
-        # stays near 3), the protection level the worst shapes' allowance (bias_*, along the line
-        # of sight at least that range bias), on position and, over the scan's lever arm, on
-        # attitude as a turn about the port (the origin moves with it; the port's bound does
-        # not). bias_* >= accuracy_bias_* (config), so the bound covers the published covariance.
+        # keeps them: the published one adds the typical correlated error (accuracy_*: the state
+        # vector's NEES stays near 3), the protection level the worst shapes' allowance (bias_*,
+        # along the line of sight at least the time of flight's range bias), on position and,
+        # over the scan's lever arm, on attitude as a turn about the port (the origin moves with
+        # it; the port's bound does not). bias_* >= accuracy_* (config) and the published line of
+        # sight is clipped to the allowance there, so the bound covers the published covariance.
         ig = self.pc.integrity
         r_port = self.r_port
         port = fp + fR @ r_port
@@ -175,7 +175,12 @@ class Publisher:
         acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * port_rng)
         bias = max(ig.bias_m, ig.bias_rad * port_rng)
         rb = out.tof_share * self.tof_bias_m
-        P_acc = _with_bias(fP, acc, rb, los)
+        # Along the line of sight the published covariance carries the time of flight's range
+        # bias and ICP's range offset on the shape (never beyond the integrity allowance there),
+        # and over the scan's lever arm a differential depth error's tilt, turned about the port.
+        rb_acc = min(math.hypot(rb, ig.accuracy_range_bias_m), max(bias, rb))
+        P_acc = turn_about(_with_bias(fP, acc, rb_acc, los), fR, r_port,
+                           (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
         P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
                            (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:

@@ -351,6 +351,7 @@ def test_published_covariance_carries_the_accuracy_allowance_and_the_bound_the_i
     def run(acc: float, bias: float):  # type: ignore[no-untyped-def]
         _, _, svs = _track_still(model, 4.0, 20, pipeline__integrity__accuracy_bias_m=acc,
                                  pipeline__integrity__accuracy_bias_rad=0.0,
+                                 pipeline__integrity__accuracy_range_bias_m=0.0,
                                  pipeline__integrity__bias_m=bias, pipeline__integrity__bias_rad=0.0,
                                  pipeline__integrity__ambiguity_check_period_s=None)
         return svs
@@ -376,17 +377,69 @@ def test_published_covariance_carries_the_accuracy_allowance_and_the_bound_the_i
                                                       integrity_factor(1e-5))
 
 
+def test_published_covariance_carries_the_range_offset_and_the_scans_tilt_and_nothing_else() -> None:
+    """ICP's range offset on a shape (``accuracy_range_bias_m``) goes along the line of sight of
+    the published covariance, clipped to the integrity allowance there; a differential depth error
+    over the scan's lever arm (``accuracy_lever_bias_m``) goes into its attitude as a turn about
+    the port, which leaves the port's covariance alone. Neither moves a pose or the protection
+    level (the closed loop is bitwise the same), and the bound covers the published covariance."""
+    from perception.pipeline.integrity import turn_about
+
+    model = generate_target("assembly", 7)
+    r = model.T_target_port[:3, 3]
+
+    def run(rng_bias: float, lever_bias: float):  # type: ignore[no-untyped-def]
+        _, _, svs = _track_still(model, 4.0, 20, pipeline__integrity__accuracy_range_bias_m=rng_bias,
+                                 pipeline__integrity__accuracy_lever_bias_m=lever_bias,
+                                 pipeline__integrity__ambiguity_check_period_s=None)
+        return svs
+
+    cfg = load_config("final_approach").pipeline.integrity
+    base, ranged, tilted, huge = run(0.0, 0.0), run(0.003, 0.0), run(0.0, 0.004), run(0.05, 0.0)
+    assert len(base) >= 10
+    k = integrity_factor(cfg.risk)
+    for a, b, c, h in zip(base, ranged, tilted, huge, strict=True):
+        for o in (b, c, h):
+            assert np.array_equal(o.position, a.position) and np.array_equal(o.quaternion, a.quaternion)
+            assert o.protection_level == a.protection_level and o.valid == a.valid
+        R = a.T_sensor_target[:3, :3]
+        port = R @ r + a.position
+        u = port / np.linalg.norm(port)
+        rng = float(np.linalg.norm(port))
+        acc = max(cfg.accuracy_bias_m, cfg.accuracy_bias_rad * rng)  # triangulation: no TOF bias
+        # the line of sight: 3 mm in place of the 1 mm generic allowance, nothing else
+        d = b.covariance - a.covariance
+        np.testing.assert_allclose(d[0:3, 0:3], (0.003**2 - acc**2) * np.outer(u, u), atol=1e-12)
+        assert np.count_nonzero(d[3:, :]) == 0 and np.count_nonzero(d[:, 3:]) == 0
+        # 50 mm is clipped to the protection level's allowance there (bias_m, 5 mm)
+        var_h = float(u @ (h.covariance - a.covariance)[0:3, 0:3] @ u)
+        assert var_h == pytest.approx(max(cfg.bias_m, cfg.bias_rad * rng) ** 2 - acc**2, rel=1e-6)
+        # the tilt: some turn about the port, the port's covariance unchanged
+        d = c.covariance - a.covariance
+        v = d[6, 6]
+        assert v > 0 and np.allclose(np.diag(d[6:9, 6:9]), v, rtol=1e-9)
+        np.testing.assert_allclose(c.covariance, turn_about(a.covariance, R, r, v), atol=1e-15)
+        np.testing.assert_allclose(port_covariance(c.covariance, R, r), port_covariance(a.covariance, R, r),
+                                   atol=1e-15)
+        # the lever: 4 mm over the scan's RMS radius, a fraction of the 0.5 m assembly's metres
+        assert 0.004 / 2.0 < np.sqrt(v) < 0.004 / 0.05
+        for o in (b, c, h):
+            assert o.protection_level >= protection_level(port_covariance(o.covariance, R, r), k)
+
+
 def test_an_accuracy_allowance_beyond_the_integrity_one_is_refused() -> None:
     with pytest.raises(ValueError, match="accuracy_bias_m=0.01 exceeds bias_m=0.005"):
         load_config("final_approach", pipeline__integrity__accuracy_bias_m=0.01)
+    with pytest.raises(ValueError, match="accuracy_lever_bias_m=0.006 exceeds bias_m=0.005"):
+        load_config("final_approach", pipeline__integrity__accuracy_lever_bias_m=0.006)
 
 
 def test_the_time_of_flight_range_bias_is_published_along_the_line_of_sight() -> None:
     """At 12 m the time of flight ranges the scan; its configured range bias shifts every frame
     the same way along the line of sight, which no filter averages away. The published covariance
-    carries it there (share of TOF points x bias, squared, in place of the smaller generic
-    allowance) and nowhere else, and the protection level still bounds the published covariance
-    when the bias exceeds the integrity allowance."""
+    carries it there (share of TOF points x bias with ICP's range offset, in place of the smaller
+    generic allowance) and nowhere else, and the protection level still bounds the published
+    covariance when the bias exceeds the integrity allowance."""
     from perception.pipeline.state import TruthScene
 
     model = generate_target("assembly", 7)
@@ -410,8 +463,10 @@ def test_the_time_of_flight_range_bias_is_published_along_the_line_of_sight() ->
         u = port / np.linalg.norm(port)
         d = b.covariance - a.covariance
         var = float(u @ d[0:3, 0:3] @ u)
-        acc = max(cfg.pipeline.integrity.accuracy_bias_m, cfg.pipeline.integrity.accuracy_bias_rad * 12.0)
-        assert 0.8 * 0.03**2 - acc**2 < var <= 0.03**2 - acc**2 + 1e-9  # mostly TOF-ranged at 12 m
+        ig = cfg.pipeline.integrity
+        acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * 12.0, ig.accuracy_range_bias_m)
+        # mostly TOF-ranged at 12 m: (share x 30 mm)^2 + range offset^2 in place of acc^2
+        assert 0.8 * 0.03**2 - acc**2 < var <= 0.03**2 + ig.accuracy_range_bias_m**2 - acc**2 + 1e-9
         np.testing.assert_allclose(d[0:3, 0:3], var * np.outer(u, u), atol=1e-12)
         assert np.count_nonzero(d[3:, :]) == 0 and np.count_nonzero(d[:, 3:]) == 0
         assert b.protection_level >= protection_level(

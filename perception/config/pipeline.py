@@ -62,25 +62,29 @@ class IntegrityConfig(StrictModel):
         "boxes-and-booms target was 4-12 cm off at 15-30 m under a 3 cm protection level)"
     )
     accuracy_bias_m: Sigma = Field(
-        0.001, description="1-sigma of the correlated position error at the port [m] that the "
-        "published covariance carries (the accuracy covariance: what the error typically is, "
-        "NEES ~3); bias_m and bias_rad, sized for the worst shapes, go into the protection level "
-        "only (the integrity covariance), as ARAIM keeps its accuracy and integrity covariances apart"
+        0.0015, description="1-sigma of the correlated position error at the port [m] that the "
+        "published covariance carries on top of the filter's accuracy covariance (what the "
+        "error typically is, NEES ~3); bias_m and bias_rad, sized for the worst shapes, go into "
+        "the protection level only (the integrity covariance), as ARAIM keeps its accuracy and "
+        "integrity covariances apart"
     )
     accuracy_bias_rad: Annotated[Float, Field(ge=0, le=1)] = Field(
-        0.0003, description="the same growing with range [rad]: 1-sigma max(accuracy_bias_m, "
-        "accuracy_bias_rad * range); along the line of sight at least the time of flight's range "
-        "bias. Fitted on generated shapes of shape seed 5 (position NEES of the filter alone "
-        "14-30, with bias_m / bias_rad 0.2-0.5); on seed 88 and the library 1.0-4.6 per target"
+        0.0001, description="the same growing with range [rad]: 1-sigma max(accuracy_bias_m, "
+        "accuracy_bias_rad * range) (1 cm at 100 m; the fit to 40 m alone wanted none)"
     )
     accuracy_range_bias_m: Sigma = Field(
-        0.003, description="1-sigma of the registrations' correlated error along the line of "
-        "sight [m] that the published covariance carries on top of the time of flight's range "
-        "bias (ICP's range offset on a shape, the same every frame: under 5 m +4 mm on the "
-        "ISS-like port and -6 mm on hubble, under 1 mm on the cubesat and CYGNSS; a static "
-        "figure cannot fit every shape, this one brings the ports' position NEES from 4.7-6.5 "
-        "to about 3 and leaves the others at 0.8-1.7); never more than the protection level's "
-        "allowance there"
+        0.004, description="1-sigma of the registrations' correlated error along the line of "
+        "sight [m] on triangulated points that the published covariance carries (ICP's range "
+        "offset on a shape, the same every frame: under 5 m +4 mm on the ISS-like port, -6 mm "
+        "on hubble, under 1 mm on the cubesat and CYGNSS); never more than the protection "
+        "level's allowance there"
+    )
+    accuracy_tof_range_bias_m: Sigma = Field(
+        0.005, description="the same on points the time of flight ranged [m], on top of its "
+        "configured range bias (the first echo over a footprint on the shape's slopes and "
+        "edges: at 10-20 m 7-12 mm along the line of sight on most shapes, bias included, "
+        "-9 mm on hubble). Fitted with the others on 11 shapes (library and generated, tuning "
+        "seeds): position NEES 0.9-3.7 per shape, a static figure cannot fit every shape"
     )
     accuracy_lever_bias_m: Sigma = Field(
         0.0005, description="differential depth error across a scan [m] that tilts the "

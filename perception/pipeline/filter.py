@@ -35,6 +35,15 @@ then attitude about the sensor axes).
 
 :class:`RangeFilter` is the bearing-mode filter: a two-state (range, range rate) Kalman filter over
 centroid ranges, so that the closing rate comes from a filter over time (seed 000 section 3.3).
+
+**Two covariances.** ``P`` is the filter's own: its measurement noise carries the pipeline's
+floors (model error, range bias) on top of ICP's, which keeps its gains robust. Those floors are
+errors that repeat from frame to frame, not noise the filter averages, so ``P`` shrinks below
+them without describing the error the state has. ``P_acc`` (the accuracy covariance) is the
+covariance of the same state under the same gains with the registrations' own noise alone
+(``cov_acc`` of :meth:`PoseFilter.update`; the Joseph form holds for any gain): what the filter
+averaged away of ICP's noise. The publisher adds the correlated errors to it
+(:mod:`perception.pipeline.publish`). ``P_acc`` never feeds back into the state.
 """
 
 from __future__ import annotations
@@ -169,6 +178,7 @@ class PoseFilter:
         self.R = np.eye(3)
         self.W = np.zeros(3)  # inertial angular velocity of the target, sensor coordinates
         self.P = np.eye(12)
+        self.P_acc = np.eye(12)
         self.ego_omega = np.zeros(3)
         self.ego_accel = np.zeros(3)
         self._q_cache: dict[float, FloatArray] = {}  # process noise by step length
@@ -207,18 +217,28 @@ class PoseFilter:
         J = self._pose_jacobian(T[:3, :3])
         return make_T(T[:3, :3], T[:3, 3] + T[:3, :3] @ self.r), J @ cov @ J.T
 
-    def target_state(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-        """``(p, v, R, w, P)`` of the target origin: position, velocity, attitude, rate, (12, 12)."""
-        a = self.R @ self.r
-        A = skew(a)
+    def _origin_jacobian(self) -> FloatArray:
+        """(12, 12) map of the internal error state to the target origin's (p, v, dtheta, w)."""
+        A = skew(self.R @ self.r)
         J = np.eye(12)
         J[0:3, 6:9] = A  # dp = dp_ref + [a]x dtheta
         J[3:6, 9:12] = A  # dv = dv_ref + [a]x domega + [w]x [a]x dtheta
         J[3:6, 6:9] = skew(self.w) @ A
         # internal (p, u, dtheta, W) -> (p, v, dtheta, w) of the reference point: v = u - ws x p
         J[3:6, 0:3] = -skew(self.ego_omega)
+        return J
+
+    def target_state(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """``(p, v, R, w, P)`` of the target origin: position, velocity, attitude, rate, (12, 12)."""
+        a = self.R @ self.r
+        J = self._origin_jacobian()
         w, v = self.w, self.v
         return (self.p - a, v - fast_cross(w, a), self.R.copy(), w.copy(), J @ self.P @ J.T)
+
+    def accuracy_covariance(self) -> FloatArray:
+        """(12, 12) ``P_acc`` about the target origin, laid out as :meth:`target_state`'s ``P``."""
+        J = self._origin_jacobian()
+        return J @ self.P_acc @ J.T
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self) -> None:
@@ -228,10 +248,14 @@ class PoseFilter:
     def initialize(
         self, t: float, T_sensor_target: FloatArray, cov_pose: FloatArray,
         velocity: FloatArray | None = None, omega: FloatArray | None = None,
+        cov_acc: FloatArray | None = None,
     ) -> None:
         """Start from a pose (and optionally rates), with ``cov_pose`` (6, 6) over (dp, dtheta);
-        all about the target origin (velocity of the origin, rate in the sensor frame)."""
-        T_ref, cov_pose = self._to_ref(np.asarray(T_sensor_target, dtype=np.float64), cov_pose)
+        all about the target origin (velocity of the origin, rate in the sensor frame).
+        ``cov_acc``: the pose's accuracy covariance (``P_acc``; default ``cov_pose``)."""
+        T_sensor_target = np.asarray(T_sensor_target, dtype=np.float64)
+        self.P_acc = self._initial_P(self._to_ref(T_sensor_target, cov_pose if cov_acc is None else cov_acc)[1])
+        T_ref, cov_pose = self._to_ref(T_sensor_target, cov_pose)
         self.t = float(t)
         self.p = T_ref[:3, 3].copy()
         self.R = T_ref[:3, :3].copy()
@@ -239,6 +263,11 @@ class PoseFilter:
         self.W = w + self.ego_omega
         v0 = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64)
         self.u = v0 + np.cross(w, self.R @ self.r) + np.cross(self.ego_omega, self.p)
+        self.P = self._initial_P(cov_pose)
+        self.initialized = True
+
+    def _initial_P(self, cov_pose: FloatArray) -> FloatArray:
+        """(12, 12) start covariance: ``cov_pose`` (6, 6, reference point) and the rates' priors."""
         P = np.zeros((12, 12))
         P[0:3, 0:3] = cov_pose[:3, :3]
         P[6:9, 6:9] = cov_pose[3:, 3:]
@@ -246,8 +275,7 @@ class PoseFilter:
         P[6:9, 0:3] = cov_pose[3:, :3]
         P[3:6, 3:6] = np.eye(3) * self.sv0**2
         P[9:12, 9:12] = np.eye(3) * self.sw0**2
-        self.P = P
-        self.initialized = True
+        return P
 
     # ------------------------------------------------------------------ prediction
     def _propagate(self, dt: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -347,16 +375,22 @@ class PoseFilter:
         F, Q = self._F_Q(dt, E, G)
         self.p, self.u, self.R, self.W = p, u, R, W
         self.P = F @ self.P @ F.T + Q
+        self.P_acc = F @ self.P_acc @ F.T + Q
         self.t = float(t)
 
     # ------------------------------------------------------------------ update
-    def update(self, t: float, T_meas: FloatArray, cov_pose: FloatArray) -> UpdateResult:
+    def update(self, t: float, T_meas: FloatArray, cov_pose: FloatArray,
+               cov_acc: FloatArray | None = None) -> UpdateResult:
         """Fuse a pose measurement taken at time ``t`` with covariance ``cov_pose`` over (dp, dtheta).
 
         Innovations beyond the chi-square gate are rejected (the state is only predicted).
+        ``cov_acc``: the measurement's own noise for ``P_acc`` (default ``cov_pose``); it never
+        changes the gain.
         """
         self.predict(t)
-        T_meas, cov_pose = self._to_ref(np.asarray(T_meas, dtype=np.float64), cov_pose)
+        T_meas = np.asarray(T_meas, dtype=np.float64)
+        R_acc = None if cov_acc is None else self._to_ref(T_meas, cov_acc)[1]
+        T_meas, cov_pose = self._to_ref(T_meas, cov_pose)
         z = np.concatenate([
             T_meas[:3, 3] - self.p,
             fast_matrix_to_rotvec(T_meas[:3, :3] @ self.R.T),
@@ -396,6 +430,9 @@ class PoseFilter:
         I_KH = np.eye(12) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ cov_pose @ K.T  # Joseph form: stays SPD
         self.P = 0.5 * (self.P + self.P.T)
+        R_acc = cov_pose if R_acc is None else R_acc
+        self.P_acc = I_KH @ self.P_acc @ I_KH.T + K @ R_acc @ K.T  # the same gain, ICP's noise
+        self.P_acc = 0.5 * (self.P_acc + self.P_acc.T)
         return UpdateResult(True, d2)
 
     def rate_doubt(self, T_meas: FloatArray, since_t: float) -> FloatArray:
@@ -453,13 +490,15 @@ class PoseFilter:
             raise ValueError(f"{name}(axis={e.tolist()}, sigma={sigma}); expected a finite "
                              "non-zero axis and a finite sigma")
         e = e / n
-        gap = float(sigma) ** 2 - float(e @ self.P[block, block] @ e)
-        if gap > 0.0:
-            u = np.zeros(12)
-            u[block] = e
-            if lever is not None:
-                u[0:3] = np.cross(e, lever)
-            self.P = self.P + gap * np.outer(u, u)
+        u = np.zeros(12)
+        u[block] = e
+        if lever is not None:
+            u[0:3] = np.cross(e, lever)
+        for name_P in ("P", "P_acc"):  # a slide is an error either covariance must carry
+            P = getattr(self, name_P)
+            gap = float(sigma) ** 2 - float(e @ P[block, block] @ e)
+            if gap > 0.0:
+                setattr(self, name_P, P + gap * np.outer(u, u))
 
     @property
     def T_sensor_target(self) -> FloatArray:

@@ -178,8 +178,10 @@ class Publisher:
         # Along the line of sight the published covariance carries the time of flight's range
         # bias and ICP's range offset on the shape (never beyond the integrity allowance there),
         # and over the scan's lever arm a differential depth error's tilt, turned about the port.
-        rb_acc = min(math.hypot(rb, ig.accuracy_range_bias_m), max(bias, rb))
-        P_acc = turn_about(_with_bias(fP, acc, rb_acc, los), fR, r_port,
+        share = out.tof_share
+        offset = share * ig.accuracy_tof_range_bias_m + (1.0 - share) * ig.accuracy_range_bias_m
+        rb_acc = min(math.hypot(rb, offset), max(bias, rb))
+        P_acc = turn_about(_with_bias(f.accuracy_covariance(), acc, rb_acc, los), fR, r_port,
                            (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
         P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
                            (bias / max(out.lever_m, 1e-3)) ** 2)

@@ -120,18 +120,21 @@ class SearchMode:
         tri.slides.start()
         res = tri.slides.apply(cloud.points, cloud, res, t_ref, tri.logic.icp_config_for(cloud.subsystem), 0)
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
+        cov_acc = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc, floors=False)
         floor = tri.pc.integrity.acquisition_floor_fraction
         if from_pah and from_track is None and floor > 0.0:
             # PAH's answer is good to its basin, not to ICP's noise: a first pose taken at its
             # claimed millimetres gave the filter a wrong velocity from the next frame.
             s = floor * float(np.linalg.norm(res.T_sensor_target[:3, 3]))
             cov = cov + np.diag([s * s] * 3 + [0.0] * 3)
+            cov_acc = cov_acc + np.diag([s * s] * 3 + [0.0] * 3)
         if from_track is not None:
             tri.stats.reacquired_from_track += 1
             tri.filter.initialize(t_ref, res.T_sensor_target, cov,
-                                  velocity=from_track.target_state()[1], omega=from_track.w)
+                                  velocity=from_track.target_state()[1], omega=from_track.w,
+                                  cov_acc=cov_acc)
         else:
-            tri.filter.initialize(t_ref, res.T_sensor_target, cov)
+            tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc)
         tri.lost_track = None
         tri.tracking.clear_rejects()
         tri.n_updates = 1

@@ -68,8 +68,11 @@ def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:
     return x * c + kx * s + np.outer(x @ k, k) * (1.0 - c) + p_r
 
 
-def measurement_cov(res: RegistrationResult, r_port: FloatArray, pc: PipelineConfig) -> FloatArray:
-    """Registration covariance plus the configured floors (what the bound leaves out).
+def measurement_cov(res: RegistrationResult, r_port: FloatArray, pc: PipelineConfig,
+                    floors: bool = True) -> FloatArray:
+    """Registration covariance plus the configured floors (what the bound leaves out); without
+    ``floors``, the registration's own (the filter's accuracy covariance takes that: the floors
+    are errors that repeat from frame to frame, which the publisher carries instead).
 
     The floors are added about the filter's reference point (the docking port, ``r_port`` (3,)
     [m] in the target frame), where the scan looks and where they were measured: added about a
@@ -79,6 +82,8 @@ def measurement_cov(res: RegistrationResult, r_port: FloatArray, pc: PipelineCon
     a = res.T_sensor_target[:3, :3] @ r_port
     J = np.eye(6)
     J[:3, 3:] = -skew(a)  # origin -> port: dp_port = dp - [a]x dtheta
+    if not floors:
+        return 0.5 * (res.covariance + res.covariance.T)
     cov = J @ res.covariance @ J.T
     cov.flat[0:21:7] += pc.measurement_floor_m**2
     cov.flat[21::7] += math.radians(pc.measurement_floor_deg) ** 2
@@ -108,7 +113,7 @@ class TrackingMode:
     def clear_rejects(self) -> None:
         """Forget the gate's rejections (an accepted update, a new track or filter)."""
         self.gate_rejects = 0
-        self.rejected: list[tuple[float, FloatArray, FloatArray]] = []  # since the last update
+        self.rejected: list[tuple[float, FloatArray, FloatArray, FloatArray]] = []  # since the last update
 
     # ------------------------------------------------------------------ the scan
     def pattern(self, T_pred: FloatArray, t: float = 0.0) -> tuple[Any, str]:
@@ -241,8 +246,9 @@ class TrackingMode:
         """The filter's update on a good registration; the frame's verdict after it."""
         tri = self.tri
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
+        cov_acc = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc, floors=False)
         tri.slides.loosen(tri.filter)
-        upd = tri.filter.update(t_ref, res.T_sensor_target, cov)
+        upd = tri.filter.update(t_ref, res.T_sensor_target, cov, cov_acc)
         if upd.accepted:
             self.clear_rejects()
             tri.n_updates += 1
@@ -256,7 +262,7 @@ class TrackingMode:
         # basin each frame: the roll of a near-cylindrical bus 20-40 deg off under a 2 deg
         # sigma) are not a track to restart on: they count towards loss of track.
         self.gate_rejects += 1
-        self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov)]
+        self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov, cov_acc)]
         self.rejected = self.rejected[-tri.pc.filter_reinit_frames:]
         restart = None
         if self.gate_rejects >= tri.pc.filter_reinit_frames and not res.degenerate_axes:
@@ -279,7 +285,7 @@ class TrackingMode:
         one restarted on those before it; else None."""
         v_origin = f.target_state()[1]
         g = f.copy()
-        (t0, T0, C0), *rest = self.rejected
+        (t0, T0, C0, A0), *rest = self.rejected
         # The rates are kept, but not as sure as before: a wrong rate is one reason the gate
         # rejects (a cylinder bus's track took a 1.5 deg/s false roll rate from a slow basin
         # change; five restarts that kept it with its small covariance each drifted the roll
@@ -288,16 +294,20 @@ class TrackingMode:
         # (After the rejected registrations have been checked against one another with the
         # rates as they were: doubted first, any two would pass.)
         doubt = f.rate_doubt(self.rejected[-1][1], self.tri.last_pose_t)
-        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w)
-        P = g.P.copy()
+        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w, cov_acc=A0)
+        P, P_acc = g.P.copy(), g.P_acc.copy()
         for rates in (slice(3, 6), slice(9, 12)):
             P[rates, rates] = f.P[rates, rates]
-        g.P = P
-        for t_k, T_k, C_k in rest:
-            if not g.update(t_k, T_k, C_k).accepted:
+            P_acc[rates, rates] = f.P_acc[rates, rates]
+        g.P, g.P_acc = P, P_acc
+        for t_k, T_k, C_k, A_k in rest:
+            if not g.update(t_k, T_k, C_k, A_k).accepted:
                 return None
-        g.P[3:6, 3:6] += np.outer(doubt[:3], doubt[:3])
-        g.P[9:12, 9:12] += np.outer(doubt[3:], doubt[3:])
+        for name in ("P", "P_acc"):
+            M = getattr(g, name).copy()
+            M[3:6, 3:6] += np.outer(doubt[:3], doubt[:3])
+            M[9:12, 9:12] += np.outer(doubt[3:], doubt[3:])
+            setattr(g, name, M)
         return g
 
     def after_loss(self, lost: bool, t: float) -> None:

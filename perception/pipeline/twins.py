@@ -169,9 +169,10 @@ class TwinMonitor:
         best_res = tri.tracking.outline_refine(best_res, pts, cloud)
         f = tri.filter
         v_origin = f.target_state()[1]
-        f.initialize(t_ref, best_res.T_sensor_target,
-                     measurement_cov(best_res, tri.target.T_target_port[:3, 3], tri.pc),
-                     velocity=v_origin, omega=f.w)
+        r_port = tri.target.T_target_port[:3, 3]
+        f.initialize(t_ref, best_res.T_sensor_target, measurement_cov(best_res, r_port, tri.pc),
+                     velocity=v_origin, omega=f.w,
+                     cov_acc=measurement_cov(best_res, r_port, tri.pc, floors=False))
         tri.last_result = best_res
         tri.stats.symmetry_switches += 1
         tri.n_updates = max(tri.n_updates, 3)

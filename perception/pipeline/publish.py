@@ -55,6 +55,7 @@ class FrameOutput:
     ambiguity_m: float = 0.0  # port offset to a twin pose the scan cannot rule out [m]
     lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
     tof_share: float = 0.0  # fraction of the frame's points the time-of-flight ranged
+    consistency: float = 1.0  # variance scale from the registrations' disagreement with the filter
 
 
 def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
@@ -191,6 +192,7 @@ class Publisher:
         # Integrity: the port's error bound from the filter's full pose covariance (the
         # unobservable directions of the registrations grow there, not in the floors).
         pl = protection_level(port_covariance(P_int, fR, r_port), integrity_factor(ig.risk))
+        pl *= math.sqrt(out.consistency)  # registrations that keep disagreeing with the filter
         pl += out.ambiguity_m  # the port may be where a twin the scan allows puts it
         al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
         kw.update(protection_level=pl, alert_limit=al)

@@ -137,6 +137,7 @@ class SearchMode:
             tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc)
         tri.lost_track = None
         tri.tracking.clear_rejects()
+        tri.tracking.nis.clear()  # a new track: its own registrations judge it
         tri.n_updates = 1
         tri.accepted_fitness = res.fitness
         # PAH's answer may be a twin of the truth until the scans rule the twins out; a seed has

@@ -9,7 +9,9 @@ ambiguity monitor (:class:`~perception.pipeline.twins.TwinMonitor`) runs on the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections import deque
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -35,6 +37,18 @@ __all__ = ["MIN_REGISTRATION_POINTS", "TrackingMode", "deskew", "measurement_cov
 
 #: Points a frame needs for a registration.
 MIN_REGISTRATION_POINTS = 12
+
+#: A registration's normalised innovation squared counts at most this much in the consistency
+#: monitor's mean (a singular innovation covariance reports inf).
+NIS_CAP = 1.0e4
+
+
+@functools.lru_cache(maxsize=64)
+def _nis_mean_bound(n: int) -> float:
+    """99.9 % quantile of the mean of ``n`` chi-square(6) values."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(0.999, 6 * n)) / n
 
 
 def deskew(cloud: PointCloud, motion_T: Any, t_ref: float) -> FloatArray:
@@ -109,6 +123,17 @@ class TrackingMode:
     def reset(self) -> None:
         self.clear_rejects()
         self.frame_pattern: tuple[Any, float] | None = None  # (pattern, start time) of the frame
+        self.nis: deque[float] = deque(maxlen=self.tri.pc.integrity.consistency_window_frames or 1)
+
+    def consistency(self) -> float:
+        """The variance scale the registrations' disagreement with the filter asks for
+        (``integrity.consistency_window_frames``): the mean normalised innovation squared of the
+        window over 6 when it is beyond chi-square(6)'s 99.9 % band for its mean, else 1."""
+        n = len(self.nis)
+        if self.tri.pc.integrity.consistency_window_frames is None or n < 2:
+            return 1.0
+        m = sum(self.nis) / n
+        return m / 6.0 if m > _nis_mean_bound(n) else 1.0
 
     def clear_rejects(self) -> None:
         """Forget the gate's rejections (an accepted update, a new track or filter)."""
@@ -234,6 +259,7 @@ class TrackingMode:
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
+                          consistency=self.consistency(),
                           tof_share=tof_share(cloud.subsystem))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
@@ -249,6 +275,8 @@ class TrackingMode:
         cov_acc = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc, floors=False)
         tri.slides.loosen(tri.filter)
         upd = tri.filter.update(t_ref, res.T_sensor_target, cov, cov_acc)
+        if tri.pc.integrity.consistency_window_frames is not None:
+            self.nis.append(min(upd.mahalanobis2, NIS_CAP))
         if upd.accepted:
             self.clear_rejects()
             tri.n_updates += 1

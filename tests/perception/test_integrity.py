@@ -470,3 +470,36 @@ def test_the_time_of_flight_range_bias_is_published_along_the_line_of_sight() ->
         assert np.count_nonzero(d[3:, :]) == 0 and np.count_nonzero(d[:, 3:]) == 0
         assert b.protection_level >= protection_level(
             port_covariance(b.covariance, b.T_sensor_target[:3, :3], r), k)
+
+
+def test_the_consistency_monitor_grows_the_bound_only_while_registrations_disagree_with_the_filter() -> None:
+    """``integrity.consistency_window_frames``: the mean normalised innovation squared over the
+    window, beyond chi-square(6)'s 99.9 % band for that mean, scales the protection level's
+    variance. Windows of honest innovations leave it alone (false alarms at most at the band's
+    rate); the window a cylinder bus's track held when it followed a false roll basin (one right
+    registration rejected at NIS 145 among wrong ones the gate passed) scales it by the mean over
+    6; and on a consistent track the state vectors are bitwise those of the monitor off."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from perception.pipeline.tracking import TrackingMode
+
+    tm = TrackingMode.__new__(TrackingMode)
+    tm.tri = SimpleNamespace(pc=SimpleNamespace(integrity=SimpleNamespace(consistency_window_frames=5)))
+    rng = np.random.default_rng(3)
+    alarms = 0
+    for _ in range(2000):
+        tm.nis = deque(rng.chisquare(6, size=5).tolist(), maxlen=5)
+        alarms += tm.consistency() != 1.0
+    assert alarms <= 2000 * 0.001 * 3
+    tm.nis = deque([14.2, 9.8, 145.3, 9.4, 2.9], maxlen=5)
+    assert tm.consistency() == pytest.approx((14.2 + 9.8 + 145.3 + 9.4 + 2.9) / 5 / 6)
+    tm.nis = deque([3.0], maxlen=5)
+    assert tm.consistency() == 1.0  # one registration is no mean
+
+    model = generate_target("assembly", 7)
+    _, _, off = _track_still(model, 4.0, 20)
+    _, _, on = _track_still(model, 4.0, 20, pipeline__integrity__consistency_window_frames=5)
+    assert len(off) >= 10 and len(on) == len(off)
+    for a, b in zip(off, on, strict=True):
+        assert a.protection_level == b.protection_level and np.array_equal(a.position, b.position)

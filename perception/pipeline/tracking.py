@@ -93,11 +93,11 @@ def measurement_cov(res: RegistrationResult, r_port: FloatArray, pc: PipelineCon
     centre of mass 12 m behind the port, the attitude floor alone would put 0.3 deg x 12 m = 6 cm
     of position error on a port whose position is known to a few millimetres.
     """
+    if not floors:
+        return 0.5 * (res.covariance + res.covariance.T)
     a = res.T_sensor_target[:3, :3] @ r_port
     J = np.eye(6)
     J[:3, 3:] = -skew(a)  # origin -> port: dp_port = dp - [a]x dtheta
-    if not floors:
-        return 0.5 * (res.covariance + res.covariance.T)
     cov = J @ res.covariance @ J.T
     cov.flat[0:21:7] += pc.measurement_floor_m**2
     cov.flat[21::7] += math.radians(pc.measurement_floor_deg) ** 2

@@ -60,10 +60,31 @@ def all_digests() -> dict[str, str]:
 
 
 
+#: Packages whose numerics the closed loop goes through: a new release of any of them (Embree's
+#: ray hits through embreex, trimesh's mesh processing, scipy's KD-tree and rotations, OpenCV's
+#: line detector) moves a seeded rollout past the 9th digit as surely as another BLAS kernel does
+#: (a fresh environment that took trimesh 5.2 and embreex 4.4 changed 7 of the 24 digests).
+NUMERIC_PACKAGES = ("numpy", "scipy", "trimesh", "embreex", "opencv-python-headless")
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of :data:`NUMERIC_PACKAGES` (``"-"`` for one not installed)."""
+    from importlib import metadata
+
+    out = {}
+    for name in NUMERIC_PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "-"
+    return out
+
+
 def numerics_fingerprint() -> str:
-    """The last bits of a few BLAS/LAPACK results of the kinds the pipeline uses: digests are
-    recorded per fingerprint (another BLAS kernel rounds differently, and a closed loop over ICP
-    and a filter carries that to the 9th digit within seconds)."""
+    """The last bits of a few BLAS/LAPACK results of the kinds the pipeline uses, and the versions
+    of :data:`NUMERIC_PACKAGES`: digests are recorded per fingerprint (another BLAS kernel or
+    another release rounds differently, and a closed loop over ICP and a filter carries that to
+    the 9th digit within seconds)."""
     rng = np.random.default_rng(0)
     h = hashlib.sha256()
     for n in (3, 6, 12, 64):
@@ -75,9 +96,10 @@ def numerics_fingerprint() -> str:
     P = rng.normal(size=(5000, 3))
     h.update((P @ rng.normal(size=(3, 3))).tobytes())
     h.update((P.T @ P).tobytes())
+    h.update(json.dumps(package_versions(), sort_keys=True).encode())
     return h.hexdigest()[:16]
 
 
 if __name__ == "__main__":
-    json.dump({numerics_fingerprint(): all_digests()}, sys.stdout, indent=2)
+    json.dump({numerics_fingerprint(): {"versions": package_versions(), **all_digests()}}, sys.stdout, indent=2)
     sys.stdout.write("\n")

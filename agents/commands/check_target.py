@@ -11,15 +11,17 @@ c. **observability map**: at distances to go along the nominal approach (docking
    tracking frame at the docking port (position) and on the attitude, for the region the mission's
    scan strategy picks and for the one the observability planner would pick
    (:mod:`perception.pipeline.observability`), which axes are unobserved, and whether the predicted
-   protection level exceeds the alert limit (the pose would be published degraded);
+   protection level exceeds the alert limit (the pose would be published degraded); and the
+   registrations' correlated error calibrated on the model
+   (:mod:`perception.pipeline.calibration`) beside the protection level's allowance;
 d. **closed loop** (unless ``--no-campaign``): ``--runs`` approaches of the stock ``final_approach``
    mission with the glideslope controller on truth and as many on the full pipeline, with the
    integrity figures of :mod:`agents.benchmarks.integrity` (docked, HMI/MI frames, maximum errors,
    where the pose was degraded);
 e. **verdict**: READY, DEGRADED (with where and why) or NOT READY (with the reasons).
 
-Files in ``--out`` (a new folder): ``report.txt``, ``observability.csv``, ``observability.png``
-and, with the campaign, ``campaign_runs.csv``, ``campaign_rows.json`` and ``error_vs_pl.png``.
+Files in ``--out`` (a new folder): ``report.txt``, ``observability.csv``, ``observability.png``,
+``accuracy_calibration.csv`` and, with the campaign, ``campaign_runs.csv``, ``campaign_rows.json`` and ``error_vs_pl.png``.
 """
 
 from __future__ import annotations
@@ -319,12 +321,71 @@ def _bin_text(b: tuple[float, float]) -> str:
     return f"{b[0]:g}-{b[1]:g} m" if math.isfinite(b[1]) else f"> {b[0]:g} m"
 
 
+# --------------------------------------------------------------------------- (c') calibration
+def accuracy_calibration(cfg: Any, target: Any) -> tuple[Any, list[str]]:
+    """The correlated registration error of the mission's pipeline on ``target``
+    (:meth:`perception.pipeline.TriDAR.accuracy_table`, with the mission's calibration settings or
+    12 aspects a range) and the ranges where it exceeds the protection level's allowance."""
+    from perception.pipeline import TriDAR
+
+    if cfg.pipeline.integrity.accuracy_calibration_poses is None:
+        cfg = cfg.model_copy(update={"pipeline": cfg.pipeline.model_copy(update={
+            "integrity": cfg.pipeline.integrity.model_copy(update={"accuracy_calibration_poses": 12})})})
+    table = TriDAR(cfg, target).accuracy_table()
+    ig = cfg.pipeline.integrity
+    over = []
+    for r, a, b in zip(table.range_m, table.across_m, table.along_m, strict=True):
+        allow = max(ig.bias_m, ig.bias_rad * float(r))
+        along_allow = max(allow, abs(cfg.sensor.tof.bias_m))
+        if (math.isfinite(a) and a > allow) or (math.isfinite(b) and b > along_allow):
+            over.append(f"{r:.1f} m")
+    return table, over
+
+
+def calibration_table(table: Any, cfg: Any) -> str:
+    """The calibration as a text table, beside the protection level's allowance per range."""
+    from agents.benchmarks.timing import format_table
+
+    ig = cfg.pipeline.integrity
+    rows = []
+    for i, r in enumerate(table.range_m):
+        allow = max(ig.bias_m, ig.bias_rad * float(r))
+        rows.append({
+            "sensor-port range [m]": f"{r:.1f}",
+            "along LOS [mm]": _or_dash(table.along_m[i], _mm),
+            "across LOS [mm]": _or_dash(table.across_m[i], _mm),
+            "attitude [deg]": _or_dash(math.degrees(table.attitude_rad[i]), _deg),
+            "aspects (along/across/att)": "/".join(str(int(n)) for n in table.samples[i]),
+            "PL allowance [mm]": _mm(allow),
+        })
+    return format_table(rows)
+
+
+def _or_dash(x: float, fmt: Any) -> str:
+    """``fmt(x)``, or "-" for a figure no aspect observed (NaN)."""
+    return "-" if math.isnan(x) else str(fmt(x))
+
+
+def calibration_csv(table: Any) -> str:
+    lines = ["range_m,along_m,across_m,attitude_rad,n_along,n_across,n_attitude"]
+    for i, r in enumerate(table.range_m):
+        n = table.samples[i]
+        lines.append(f"{r:.6g},{table.along_m[i]:.6g},{table.across_m[i]:.6g},{table.attitude_rad[i]:.6g},"
+                     f"{int(n[0])},{int(n[1])},{int(n[2])}")
+    return "\n".join(lines) + "\n"
+
+
 # --------------------------------------------------------------------------- (e) verdict
 def verdict(rows: list[MapRow], campaign: dict[str, dict[str, Any]] | None,
-            deg_bins: list[tuple[tuple[float, float], int, float]]) -> tuple[str, list[str]]:
+            deg_bins: list[tuple[tuple[float, float], int, float]],
+            over_allowance: list[str] | None = None) -> tuple[str, list[str]]:
     """READY / DEGRADED / NOT READY and the reasons (one line each)."""
     not_ready: list[str] = []
     degraded: list[str] = []
+    if over_allowance:
+        degraded.append("the model's correlated registration error exceeds the protection level's "
+                        "allowance (integrity.bias_m / bias_rad) at " + ", ".join(over_allowance)
+                        + ": raise it, or the bound may not cover this shape")
     close = [r for r in rows if r.range_m <= CLOSE_IN_M]
     if close and all(r.weak_axes and r.planner_weak_axes for r in close):
         not_ready.append("no candidate region observes all six axes inside "
@@ -434,6 +495,15 @@ def run(args: argparse.Namespace) -> int:
     _write_map_csv(out / "observability.csv", rows)
     plot_map(out / "observability.png", rows, f"{target.name}: predicted bounds along the approach")
 
+    # (c') the correlated error calibrated on the model
+    t0 = time.perf_counter()
+    table, over = accuracy_calibration(cfg, target)
+    say(f"(c') correlated registration error calibrated on the model ({time.perf_counter() - t0:.1f} s; "
+        "1-sigma at the port over dispersed aspects, white noise removed; the published covariance "
+        "carries it with integrity.accuracy_calibration_poses set)")
+    say(calibration_table(table, cfg))
+    (out / "accuracy_calibration.csv").write_text(calibration_csv(table))
+
     # (d) closed-loop campaign
     campaign: dict[str, dict[str, Any]] | None = None
     deg_bins: list = []
@@ -478,7 +548,7 @@ def run(args: argparse.Namespace) -> int:
         plot_error_vs_pl(out / "error_vs_pl.png", [("tridar", records["tridar"])])
 
     # (e) verdict
-    word, reasons = verdict(rows, campaign, deg_bins)
+    word, reasons = verdict(rows, campaign, deg_bins, over)
     say("")
     say(f"VERDICT: {word}")
     for r in reasons:

@@ -35,6 +35,15 @@ def test_flat_face_map_and_verdict(tmp_path, capsys):
     for name in ("report.txt", "observability.png"):
         assert (out / name).is_file()
     assert not (out / "rows.csv").exists()  # no campaign
+    # the correlated error calibrated on the model: millimetres along the line of sight (the time
+    # of flight's 5 mm bias where it ranges), a figure per range that some aspect observed
+    assert "(c') correlated registration error calibrated" in text
+    with (out / "accuracy_calibration.csv").open(newline="") as f:
+        cal = list(csv.DictReader(f))
+    assert len(cal) == 8
+    along = [float(r["along_m"]) for r in cal if int(r["n_along"]) > 0]
+    assert len(along) >= 4 and all(0.0 <= a < 0.02 for a in along)
+    assert all(math.isnan(float(r["across_m"])) == (int(r["n_across"]) == 0) for r in cal)
 
 
 def test_nan_vertex_mesh_refused_in_one_line(tmp_path, capsys):
@@ -69,6 +78,16 @@ def _row(r: float, weak: list[str], planner_weak: list[str], pl: float = 0.01) -
     return MapRow(range_m=r, sensor_range_m=r + 2.1, region="port", port_bound_m=pl / 5, attitude_bound_deg=0.1, weak_axes=weak,
                   n_hits=300, predicted_pl_m=pl, alert_limit_m=0.08, planner_region="port",
                   planner_port_bound_m=pl / 5, planner_attitude_bound_deg=0.1, planner_weak_axes=planner_weak)
+
+
+def test_a_correlated_error_beyond_the_allowance_is_a_degraded_verdict():
+    row = MapRow(range_m=10.0, sensor_range_m=10.5, region="docking_area", port_bound_m=0.002,
+                 attitude_bound_deg=0.05, weak_axes=[], n_hits=400, predicted_pl_m=0.01,
+                 alert_limit_m=0.1, planner_region="docking_area", planner_port_bound_m=0.002,
+                 planner_attitude_bound_deg=0.05)
+    word, reasons = verdict([row], None, [], ["12.3 m"])
+    assert word == "DEGRADED" and any("12.3 m" in r and "allowance" in r for r in reasons)
+    assert verdict([row], None, [], [])[0] == "READY"
 
 
 def test_verdict_words():

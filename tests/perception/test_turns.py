@@ -64,8 +64,8 @@ def _fly_rolled(monkeypatch, cfg, range_m: float, roll_deg: float, frames: int):
 def test_a_roll_the_scans_cannot_pin_is_not_published_valid(monkeypatch, monitor: bool) -> None:
     """At 28 m the boom gives a few returns a frame at most: a track that PAH started 60 deg off
     in roll stays there (the rim's facets give the registration a confident, wrong roll). Without
-    the turn monitor its port is published valid 0.4 m off under a protection level of
-    centimetres; with it no frame is valid and wrong (degraded while the turn is open, moved to
+    the turn monitor its port is published valid 0.3-0.6 m off under a protection level of
+    15-20 cm; with it no frame is valid and wrong (degraded while the turn is open, moved to
     the right roll, or, in the first frames, before the first probe, under a bound the
     registrations' unobserved roll has kept wide enough to cover it)."""
     cfg = _config(monitor)
@@ -80,8 +80,11 @@ def test_a_roll_the_scans_cannot_pin_is_not_published_valid(monkeypatch, monitor
         assert all(sv.valid.degraded or e < 0.05 or (sv.t <= first_probe + 1.0 and e < sv.protection_level)
                    for e, sv in zip(err, tracked))
     else:
-        assert np.median(err) > 0.3
-        assert misleading.mean() > 0.5  # valid 0.47 m off under ~0.15 m, from 6 s on
+        # valid 0.47 m off under ~0.15 m from 6 s on (trimesh 4, embreex 2); with trimesh 5.2 and
+        # embreex 4.4 the wrong roll wanders between 0.04 and 0.56 m off, valid and outside its
+        # bound in a third of the frames: a hazard either way
+        assert misleading.mean() > 0.2
+        assert err[misleading].max() > 0.3
 
 
 @pytest.mark.parametrize("roll_deg", [0.0, 90.0])

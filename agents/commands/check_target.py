@@ -322,16 +322,30 @@ def _bin_text(b: tuple[float, float]) -> str:
 
 
 # --------------------------------------------------------------------------- (c') calibration
+#: Aspects a calibrated range, scans an aspect, and calibrated ranges (geometric from
+#: CALIBRATION_MIN_RANGE_M to 1.25 times the approach's farthest start).
+CALIBRATION_POSES, CALIBRATION_REPEATS, CALIBRATION_RANGES, CALIBRATION_MIN_RANGE_M = 12, 3, 8, 1.5
+
+
 def accuracy_calibration(cfg: Any, target: Any) -> tuple[Any, list[str]]:
     """The correlated registration error of the mission's pipeline on ``target``
-    (:meth:`perception.pipeline.TriDAR.accuracy_table`, with the mission's calibration settings or
-    12 aspects a range) and the ranges where it exceeds the protection level's allowance."""
-    from perception.pipeline import TriDAR
+    (:func:`perception.pipeline.calibration.calibrate_accuracy`, on a fault-free copy of the
+    sensor) and the ranges where it exceeds the protection level's allowance."""
+    import numpy as np
 
-    if cfg.pipeline.integrity.accuracy_calibration_poses is None:
-        cfg = cfg.model_copy(update={"pipeline": cfg.pipeline.model_copy(update={
-            "integrity": cfg.pipeline.integrity.model_copy(update={"accuracy_calibration_poses": 12})})})
-    table = TriDAR(cfg, target).accuracy_table()
+    from perception.pipeline import TriDAR
+    from perception.pipeline.calibration import CALIBRATION_SEED, calibrate_accuracy, calibration_ranges
+    from perception.sensing.sensors.tridar import TriDARSensor
+
+    ini = cfg.env.initial
+    far = 1.25 * (ini.range_m + 2.0 * ini.range_dispersion_m)
+    ranges = calibration_ranges(CALIBRATION_MIN_RANGE_M, max(far, 2.0 * CALIBRATION_MIN_RANGE_M),
+                                CALIBRATION_RANGES)
+    clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
+    rng = np.random.default_rng(CALIBRATION_SEED)
+    tri = TriDAR(cfg, target, sensor=TriDARSensor(clean))
+    tri.reset(rng)
+    table = calibrate_accuracy(tri, ranges, CALIBRATION_POSES, CALIBRATION_REPEATS, rng)
     ig = cfg.pipeline.integrity
     over = []
     for r, a, b in zip(table.range_m, table.across_m, table.along_m, strict=True):
@@ -499,8 +513,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     table, over = accuracy_calibration(cfg, target)
     say(f"(c') correlated registration error calibrated on the model ({time.perf_counter() - t0:.1f} s; "
-        "1-sigma at the port over dispersed aspects, white noise removed; the published covariance "
-        "carries it with integrity.accuracy_calibration_poses set)")
+        "1-sigma at the port over dispersed aspects, white noise removed, beside the protection "
+        "level's allowance)")
     say(calibration_table(table, cfg))
     (out / "accuracy_calibration.csv").write_text(calibration_csv(table))
 

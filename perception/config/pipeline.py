@@ -92,23 +92,6 @@ class IntegrityConfig(StrictModel):
         "distance of the frame's points from their centroid) as a turn about the port (a "
         "cubesat, 0.29 m lever, held a steady 0.15-0.2 deg at 5-35 m under a 0.07 deg sigma)"
     )
-    accuracy_calibration_poses: Annotated[Int, Field(ge=1, le=1000)] | None = Field(
-        None, description="calibrate the published covariance's correlated error on the target's "
-        "own model before flight (perception.pipeline.calibration): this many aspects at each "
-        "calibrated range, whose figures replace the static accuracy_* ones (clipped to the "
-        "protection level's allowance); the closed loop is the same (None: off, the static "
-        "figures)"
-    )
-    accuracy_calibration_repeats: Annotated[Int, Field(ge=2, le=100)] = Field(
-        3, description="scans per calibrated aspect (their scatter separates the white noise)"
-    )
-    accuracy_calibration_ranges: Annotated[Int, Field(ge=2, le=100)] = Field(
-        8, description="calibrated sensor-to-port ranges, geometric from "
-        "accuracy_calibration_min_range_m to 1.25 times the approach's farthest start"
-    )
-    accuracy_calibration_min_range_m: PositiveFloat = Field(
-        1.5, description="nearest calibrated sensor-to-port range [m]"
-    )
     confirm_frames: Annotated[Int, Field(ge=1, le=10_000)] = Field(
         3, description="accepted frames before a new track's pose may be published valid"
     )

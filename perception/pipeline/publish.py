@@ -18,7 +18,6 @@ import numpy.typing as npt
 
 from perception.config import PipelineConfig
 from perception.geometry import fast_matrix_to_quat
-from perception.pipeline.calibration import AccuracyTable
 from perception.pipeline.filter import EgoMotion, PoseFilter
 from perception.pipeline.integrity import (
     alert_limit,
@@ -99,10 +98,6 @@ class Publisher:
         self.max_pose_age = max_pose_age
         self.tof_bias_m = abs(float(tof_bias_m))
         self.reset()
-
-    #: The target's calibrated correlated error (:meth:`TriDAR.prepare`), or None: the static
-    #: ``integrity.accuracy_*`` figures.
-    accuracy: AccuracyTable | None = None
 
     def reset(self) -> None:
         self.pending: list[FrameOutput] = []
@@ -187,20 +182,10 @@ class Publisher:
         share = out.tof_share
         offset = share * ig.accuracy_tof_range_bias_m + (1.0 - share) * ig.accuracy_range_bias_m
         rb_acc = min(math.hypot(rb, offset), max(bias, rb))
-        att_int = bias / max(out.lever_m, 1e-3)
-        if self.accuracy is None:
-            P_acc = turn_about(_with_bias(f.accuracy_covariance(), acc, rb_acc, los), fR, r_port,
-                               (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
-        else:
-            # Calibrated on the target's model (perception.pipeline.calibration), never beyond
-            # the protection level's allowance: across the line of sight, along it and in
-            # attitude about the port.
-            across, along, att = self.accuracy.at(port_rng)
-            P_acc = f.accuracy_covariance().copy()
-            P_acc[0:3, 0:3] += (min(across, bias) ** 2 * (np.eye(3) - los)
-                                + min(along, max(bias, rb)) ** 2 * los)
-            P_acc = turn_about(P_acc, fR, r_port, min(att, att_int) ** 2)
-        P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port, att_int**2)
+        P_acc = turn_about(_with_bias(f.accuracy_covariance(), acc, rb_acc, los), fR, r_port,
+                           (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
+        P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
+                           (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:
             for b in blocks:
                 cov[a, b] = P_acc[a, b]

@@ -34,12 +34,6 @@ from perception.config import MissionConfig
 from perception.estimation.registration import RegistrationResult, prepare_model
 from perception.geometry import check_rigid, fast_rotvec_to_matrix, make_T
 from perception.pipeline.bearing import BearingMode
-from perception.pipeline.calibration import (
-    CALIBRATION_SEED,
-    AccuracyTable,
-    calibrate_accuracy,
-    calibration_ranges,
-)
 from perception.pipeline.filter import EgoMotion, PoseFilter
 from perception.pipeline.modes import ModeLogic, corridor_constraint
 from perception.pipeline.observability import ScanPlanner
@@ -226,36 +220,8 @@ class TriDAR:
     def prepare(self) -> None:
         """Build what search needs now rather than in the first search frame: the PAH database and
         the target's near-symmetries (about 1 s for the ISS-like port; once per process and target,
-        cached on the target); with ``integrity.accuracy_calibration_poses`` set, the
-        published covariance's correlated error calibrated on the target's model
-        (:meth:`accuracy_table`)."""
+        cached on the target)."""
         self.pah.near_symmetries()
-        if self.pc.integrity.accuracy_calibration_poses is not None:
-            self.publisher.accuracy = self.accuracy_table()
-
-    def accuracy_table(self) -> AccuracyTable:
-        """The target's correlated registration error along the mission's approach
-        (:func:`~perception.pipeline.calibration.calibrate_accuracy`): from
-        ``accuracy_calibration_min_range_m`` to 1.25 times the farthest start of the approach,
-        on a fault-free copy of the sensor and a pipeline of its own (this one's state and
-        generator are not touched); once per process, target and settings, cached on the target."""
-        ig = self.pc.integrity
-        ini = self.cfg.env.initial
-        far = 1.25 * (ini.range_m + 2.0 * ini.range_dispersion_m)
-        lo = ig.accuracy_calibration_min_range_m
-        ranges = calibration_ranges(lo, max(far, 2.0 * lo), ig.accuracy_calibration_ranges)
-        poses = int(ig.accuracy_calibration_poses or 1)
-        clean = self.cfg.sensor.model_copy(update={"faults": type(self.cfg.sensor.faults)()})
-        key = ("accuracy_calibration", clean.model_dump_json(), self.pc.model_dump_json(),
-               tuple(float(r) for r in ranges), self.cfg.dynamics.chaser.model_dump_json())
-
-        def build() -> AccuracyTable:
-            rng = np.random.default_rng(CALIBRATION_SEED)
-            cal = TriDAR(self.cfg, self.target, sensor=TriDARSensor(clean), pah=self._pah)
-            cal.reset(rng)
-            return calibrate_accuracy(cal, ranges, poses, ig.accuracy_calibration_repeats, rng)
-
-        return self.target.cached(key, build)
 
     # ------------------------------------------------------------------ the frame
     def take_ego(self, t: float, ego: EgoMotion) -> None:

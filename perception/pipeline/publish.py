@@ -56,6 +56,7 @@ class FrameOutput:
     lever_m: float = math.inf  # RMS distance of the frame's points from their centroid [m]
     tof_share: float = 0.0  # fraction of the frame's points the time-of-flight ranged
     consistency: float = 1.0  # variance scale from the registrations' disagreement with the filter
+    turn_confirmed: bool = True  # the turn monitor has judged the track (SlideMonitor.turn_confirmed)
 
 
 def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
@@ -197,7 +198,8 @@ class Publisher:
         al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
         kw.update(protection_level=pl, alert_limit=al)
         # A track is trusted once confirmed by a few accepted frames (its rates estimated; an
-        # acquisition's transient is not yet inside the filter's covariance).
+        # acquisition's transient is not yet inside the filter's covariance) and, with the turn
+        # monitor on, by its turn probes.
         # A registration that leaves many returns unexplained is not a pose to close in on.
         valid_kw["degraded"] = (pl > al or out.n_updates < ig.confirm_frames
-                                or out.fitness < ig.min_valid_fitness)
+                                or out.fitness < ig.min_valid_fitness or not out.turn_confirmed)

@@ -100,6 +100,16 @@ well, port behind it: held at 104 deg, it kept a docking degraded at 3-8 m). A r
 registration already reports degenerate (sigma over 0.5 rad) is not probed: the frame says so
 itself, and the filter's continuity carries the turn through it.
 
+**A new track waits for its turn probes**: it is probed at every frame until
+``symmetry_switch_checks`` probes have run on it (frames that leave the turn degenerate do not
+count), and its pose is published degraded until then. A track PAH started 60 deg off in roll on a
+generated cylinder bus at 28 m took three frames that left the roll degenerate, then one that
+claimed it to 0.26 deg; that frame's probe found a far turn of only 8 deg alike (the turn it
+probes about is the registration's weakest, not yet the bus's axis), and the next frames were
+published valid 0.38 m off under a 0.32 m protection level, until the probe four frames later
+found the 55 deg turn. The judgement over several probes (below) is what rules a turn in or out;
+one probe is not a judgement.
+
 **A held turn lapses only on evidence that it is pinned**: ``slide_hold_s`` after it was last
 found, and once ``symmetry_switch_checks`` probes in a row that ran found no turn, or one far
 tighter (under a third of its sigma; a tighter finding does not renew it). Frames that leave the
@@ -213,6 +223,14 @@ class SlideMonitor:
         self.turn_leads = np.empty((0, 3))
 
     @property
+    def turn_confirmed(self) -> bool:
+        """Whether the turn monitor has judged the track (since its start or its last move) at
+        ``symmetry_switch_checks`` probes that ran; True with the monitor off. Until then its
+        pose is published degraded (module doc, "A new track waits for its turn probes")."""
+        return (self.tri.pc.integrity.turn_check_period_s is None
+                or len(self.turn_leads) >= self.tri.pc.symmetry_switch_checks)
+
+    @property
     def enabled(self) -> bool:
         ig = self.tri.pc.integrity
         return ig.slide_check_period_s is not None or ig.turn_check_period_s is not None
@@ -236,7 +254,8 @@ class SlideMonitor:
                 self.held = [h for h in self.held if h.pivot is not None]
             if self.axis_target is not None:
                 self.hold(self.axis_target, self.sigma_m, t_ref)
-        if due(ig.turn_check_period_s, self.turn_checked_t):
+        # A new track is probed at every frame until it is confirmed (turn_confirmed).
+        if due(ig.turn_check_period_s, self.turn_checked_t) or not self.turn_confirmed:
             # A frame that leaves the turn degenerate is not probed; the next one is (probing
             # on schedule only, a track PAH started 60 deg off in roll met a degenerate frame at
             # every probe while the frames between claimed the roll, and was published wrong).

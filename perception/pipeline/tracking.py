@@ -259,7 +259,7 @@ class TrackingMode:
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
-                          consistency=self.consistency(),
+                          consistency=self.consistency(), turn_confirmed=tri.slides.turn_confirmed,
                           tof_share=tof_share(cloud.subsystem))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate

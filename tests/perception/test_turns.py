@@ -214,20 +214,25 @@ def test_a_track_that_leaves_the_approach_corridor_is_dropped_and_never_publishe
     tri.reset(np.random.default_rng(7))
     fly = Fly(approach_pose(cfg, target, 14.0, lateral=(0.03, -0.02)))
     hist = _run(tri, fly, 30)
+    # A first track may drift out of the corridor by itself (the bus's roll at 14 m; with
+    # trimesh 5.2 / embreex 4.4 it did at 4.8 s) and be acquired again: wait for a track.
+    while not (tri.mode == Mode.TRACKING and hist[-1][1].valid.attitude) and len(hist) < 120:
+        hist += _run(tri, fly, 1, t0=len(hist) * 0.2)
     assert tri.mode == Mode.TRACKING and hist[-1][1].valid.attitude
-    exits = tri.stats.corridor_exits  # a first track may have drifted out already
+    exits = tri.stats.corridor_exits
+    t_turn = len(hist) * 0.2
 
     def turn(k: int, t: float) -> None:
         if k == 0:  # the bus's axis is the target's z
             tri.filter.R = tri.filter.R @ rotation_z(np.radians(40.0))
 
-    hist += _run(tri, fly, 60, t0=30 * 0.2, hook=turn)
+    hist += _run(tri, fly, 60, t0=t_turn, hook=turn)
     posed = [sv for _, sv in hist if sv.valid.attitude and not sv.valid.degraded]
     off = [np.degrees(np.linalg.norm(Rotation.from_matrix(tri.R_nominal.T @ sv.T_sensor_target[:3, :3]).as_rotvec()))
            for sv in posed]
     assert max(off) <= tol
     assert tri.stats.corridor_exits > exits
-    assert any("outside the approach corridor" in e.reason for e in tri.logic.events if e.t >= 30 * 0.2)
+    assert any("outside the approach corridor" in e.reason for e in tri.logic.events if e.t >= t_turn)
     assert tri.mode == Mode.TRACKING  # acquired again, inside the corridor
     assert any(sv.valid.attitude for _, sv in hist[-10:])
 

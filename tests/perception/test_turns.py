@@ -292,3 +292,39 @@ def test_a_far_turn_that_loses_probe_after_probe_is_ruled_out(monkeypatch, rule_
     assert probe(8) == pytest.approx(30.0, abs=0.5)  # it leads once: another answer again
     lead["value"] = -0.02
     assert probe(9) == pytest.approx(30.0, abs=0.5)  # the run of losses starts again
+
+
+def test_a_new_track_is_probed_every_frame_and_degraded_until_its_turn_probes_have_judged_it() -> None:
+    """One probe is no judgement: a new track is probed at every frame (not every
+    turn_check_period_s) until symmetry_switch_checks probes have run on it, and every pose it
+    publishes before is degraded; at 11 m, where the boom pins the bus's roll, the track is
+    judged within seconds and then published valid within its bound and a few centimetres."""
+    cfg = load_config("final_approach")  # stock: the corridor's 20 deg, a probe every 2 s
+    assert cfg.pipeline.integrity.turn_check_period_s >= 1.0
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(7))
+    fly = Fly(approach_pose(cfg, target, 11.0, lateral=(0.03, -0.02)))
+    r = target.T_target_port[:3, 3]
+    port_true = fly.T(0.0)[:3, :3] @ r + fly.T(0.0)[:3, 3]
+    n = cfg.pipeline.symmetry_switch_checks
+    probes, unconfirmed_posed, valid_err = [], 0, []
+    for k in range(60):
+        t = 0.2 * k
+        sv = tri.step(fly.scene(t), t)
+        probes.append((tri.slides.turn_probes, tri.slides.turn_confirmed, tri.mode))
+        out = tri.publisher.published
+        if sv.valid.position and out is not None and not out.turn_confirmed:
+            unconfirmed_posed += 1
+            assert sv.valid.degraded and not sv.valid.pose
+        if sv.valid.pose:
+            T = sv.T_sensor_target
+            valid_err.append(float(np.linalg.norm(T[:3, :3] @ r + T[:3, 3] - port_true)))
+            assert valid_err[-1] <= sv.protection_level
+    assert unconfirmed_posed >= 1  # the track's first published poses wait for the probes
+    first = next(i for i, (_, ok, _) in enumerate(probes) if ok)
+    # until confirmed, a probe at (nearly) every tracking frame: far more than one per period
+    tracking = [i for i, (_, _, m) in enumerate(probes[:first + 1]) if m == Mode.TRACKING]
+    assert probes[first][0] >= n and first <= 40  # (frames that leave the roll degenerate do not count)
+    assert probes[first][0] > (0.2 * len(tracking)) / cfg.pipeline.integrity.turn_check_period_s + 1
+    assert len(valid_err) >= 30 and max(valid_err) < 0.05

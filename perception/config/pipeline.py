@@ -36,6 +36,11 @@ class CorridorConfig(StrictModel):
     attitude_tolerance_deg: Annotated[Float, Field(gt=0, le=180)] = 20.0
     min_range_m: NonNegRange = 0.0
     max_range_m: Range = 1000.0
+    max_rate_deg_s: Annotated[Float, Field(gt=0, le=1000)] | None = Field(
+        None, description="a confirmed track whose target turns faster than this [deg/s] (its "
+        "inertial rate with ego-motion, else the relative one) is outside the corridor: a "
+        "target the mission holds in LVLH does not spin (None: no check)"
+    )
 
 
 class IntegrityConfig(StrictModel):

@@ -211,18 +211,29 @@ class TrackingMode:
         left the 20 deg corridor for 50-160 deg, published valid 0.3-0.88 m off at the port
         between the turn monitor's holds. Only the attitude is judged: close in, the line of
         sight to the target origin of a large target can leave the cone while the port is on
-        the axis.
+        the axis. A confirmed track turning faster than ``corridor.max_rate_deg_s`` is judged
+        outside it too.
         """
         tri = self.tri
         corridor = tri.corridor
         if corridor is None or not tri.filter.initialized or tri.logic.mode != Mode.TRACKING:
             return None
         R = tri.filter.pose_at(t_ref)[:3, :3]
-        if corridor.attitude_ok(R[None])[0]:
+        if not corridor.attitude_ok(R[None])[0]:
+            off = math.degrees(float(np.linalg.norm(fast_matrix_to_rotvec(corridor.R_sensor_target_nominal.T @ R))))
+            return (f"tracked attitude {off:.1f} deg from the nominal, outside the approach corridor "
+                    f"(corridor.attitude_tolerance_deg={tri.pc.corridor.attitude_tolerance_deg:g})")
+        # The same for the turn rate: a restarted filter on the bus took a false roll rate of
+        # 4 deg/s from registrations whose scans its own prediction steered, and was published
+        # valid up to 0.14 m off at 7 m before the roll had left the 20 deg corridor.
+        limit = tri.pc.corridor.max_rate_deg_s
+        if limit is None or tri.n_updates < tri.pc.integrity.confirm_frames:
             return None
-        off = math.degrees(float(np.linalg.norm(fast_matrix_to_rotvec(corridor.R_sensor_target_nominal.T @ R))))
-        return (f"tracked attitude {off:.1f} deg from the nominal, outside the approach corridor "
-                f"(corridor.attitude_tolerance_deg={tri.pc.corridor.attitude_tolerance_deg:g})")
+        rate = math.degrees(float(np.linalg.norm(tri.filter.W)))
+        if rate <= limit:
+            return None
+        return (f"tracked turn rate {rate:.2f} deg/s, outside the approach corridor "
+                f"(corridor.max_rate_deg_s={limit:g})")
 
     def drop(self, t: float, reason: str) -> None:
         """Lose the track now, for ``reason``, and forget it: a wrong track is no prediction to
@@ -302,6 +313,9 @@ class TrackingMode:
         self.clear_rejects()
         tri.stats.filter_reinits += 1
         tri.n_updates = 1
+        # A restarted filter is a new track to the monitors: probed from its first frames and
+        # confirmed by its turn probes (slides.turn_confirmed) before it is trusted.
+        tri.slides.start()
         tri.last_pose_t = t_ref
         tri.accepted_fitness = res.fitness
         return verdict

@@ -328,3 +328,34 @@ def test_a_new_track_is_probed_every_frame_and_degraded_until_its_turn_probes_ha
     assert probes[first][0] >= n and first <= 40  # (frames that leave the roll degenerate do not count)
     assert probes[first][0] > (0.2 * len(tracking)) / cfg.pipeline.integrity.turn_check_period_s + 1
     assert len(valid_err) >= 30 and max(valid_err) < 0.05
+
+
+@pytest.mark.parametrize("rate_deg_s, dropped", [(4.0, True), (1.0, False)])
+def test_a_confirmed_track_turning_faster_than_the_corridor_allows_is_dropped(rate_deg_s: float, dropped: bool) -> None:
+    """The stock corridor holds the target's turn rate too (``corridor.max_rate_deg_s``, 2 deg/s
+    for an LVLH-holding target): a track whose filter took a false rate of 4 deg/s is lost at its
+    next frame, for that reason, and nothing it published after is valid; 1 deg/s stays
+    tracked."""
+    cfg = load_config("final_approach")
+    assert cfg.pipeline.corridor.max_rate_deg_s == 2.0
+    target = generate_target("assembly", 7)
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(3))
+    fly = Fly(approach_pose(cfg, target, 12.0))
+    hist = _run(tri, fly, 30)
+    assert tri.mode == Mode.TRACKING and hist[-1][1].valid.pose
+    t_kick = len(hist) * 0.2
+    exits = tri.stats.corridor_exits
+
+    def kick(k: int, t: float) -> None:
+        if k == 0:
+            tri.filter.W = tri.filter.W + np.radians([0.0, 0.0, rate_deg_s])
+
+    hist += _run(tri, fly, 3, t0=t_kick, hook=kick)
+    reasons = [e.reason for e in tri.logic.events if e.t >= t_kick]
+    if dropped:
+        assert tri.stats.corridor_exits == exits + 1
+        assert any("tracked turn rate" in r and "max_rate_deg_s=2" in r for r in reasons)
+    else:
+        assert tri.stats.corridor_exits == exits and not reasons
+        assert tri.mode == Mode.TRACKING

@@ -227,10 +227,13 @@ def test_a_track_that_leaves_the_approach_corridor_is_dropped_and_never_publishe
             tri.filter.R = tri.filter.R @ rotation_z(np.radians(40.0))
 
     hist += _run(tri, fly, 60, t0=t_turn, hook=turn)
-    posed = [sv for _, sv in hist if sv.valid.attitude and not sv.valid.degraded]
+    # Every published attitude, degraded ones included (a degraded pose still carries numbers a
+    # controller may back away on): on this bus at 14 m the turn monitor keeps most of them
+    # degraded, so only valid poses would leave the check nearly empty.
+    posed = [sv for _, sv in hist if sv.valid.attitude]
     off = [np.degrees(np.linalg.norm(Rotation.from_matrix(tri.R_nominal.T @ sv.T_sensor_target[:3, :3]).as_rotvec()))
            for sv in posed]
-    assert max(off) <= tol
+    assert len(posed) >= 30 and max(off) <= tol
     assert tri.stats.corridor_exits > exits
     assert any("outside the approach corridor" in e.reason for e in tri.logic.events if e.t >= t_turn)
     assert tri.mode == Mode.TRACKING  # acquired again, inside the corridor

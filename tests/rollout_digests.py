@@ -80,11 +80,34 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+#: SIMD levels, widest last: Embree (through embreex) picks its ray kernels by the widest the CPU
+#: has, whatever OpenBLAS is told, and its hits round differently on each.
+SIMD_LEVELS = ("sse4_2", "avx", "avx2", "avx512f")
+
+
+def simd_level() -> str:
+    """The widest of :data:`SIMD_LEVELS` this CPU lists (Linux ``/proc/cpuinfo``; ``"-"`` where
+    it cannot be read). Two machines whose BLAS rounds alike (an AVX-512 EPYC told
+    ``OPENBLAS_CORETYPE=Haswell`` and an AVX2 one) still differed on 7 of the 24 digests: their
+    ray casts did."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            flags: set[str] = set()
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    break
+    except OSError:
+        return "-"
+    have = [level for level in SIMD_LEVELS if level in flags]
+    return have[-1] if have else "-"
+
+
 def numerics_fingerprint() -> str:
-    """The last bits of a few BLAS/LAPACK results of the kinds the pipeline uses, and the versions
-    of :data:`NUMERIC_PACKAGES`: digests are recorded per fingerprint (another BLAS kernel or
-    another release rounds differently, and a closed loop over ICP and a filter carries that to
-    the 9th digit within seconds)."""
+    """The last bits of a few BLAS/LAPACK results of the kinds the pipeline uses, the versions of
+    :data:`NUMERIC_PACKAGES` and the CPU's :func:`simd_level`: digests are recorded per
+    fingerprint (another BLAS kernel, another release or another ray kernel rounds differently,
+    and a closed loop over ICP and a filter carries that to the 9th digit within seconds)."""
     rng = np.random.default_rng(0)
     h = hashlib.sha256()
     for n in (3, 6, 12, 64):
@@ -97,9 +120,11 @@ def numerics_fingerprint() -> str:
     h.update((P @ rng.normal(size=(3, 3))).tobytes())
     h.update((P.T @ P).tobytes())
     h.update(json.dumps(package_versions(), sort_keys=True).encode())
+    h.update(simd_level().encode())
     return h.hexdigest()[:16]
 
 
 if __name__ == "__main__":
-    json.dump({numerics_fingerprint(): {"versions": package_versions(), **all_digests()}}, sys.stdout, indent=2)
+    entry = {"versions": package_versions(), "simd": simd_level(), **all_digests()}
+    json.dump({numerics_fingerprint(): entry}, sys.stdout, indent=2)
     sys.stdout.write("\n")

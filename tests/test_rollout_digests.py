@@ -30,6 +30,7 @@ def test_the_fingerprint_names_the_package_versions_it_was_recorded_with() -> No
 
     for fp, entry in RECORDED.items():
         assert set(entry["versions"]) == set(rd.NUMERIC_PACKAGES), fp
+        assert entry["simd"] in (*rd.SIMD_LEVELS, "-"), fp
     here = rd.numerics_fingerprint()
     real = rd.package_versions
     try:
@@ -37,3 +38,9 @@ def test_the_fingerprint_names_the_package_versions_it_was_recorded_with() -> No
         assert rd.numerics_fingerprint() != here
     finally:
         rd.package_versions = real  # type: ignore[assignment]
+    real_simd = rd.simd_level
+    try:  # the same BLAS and releases on a CPU with other ray kernels are another build
+        rd.simd_level = lambda: "avx2" if real_simd() != "avx2" else "avx512f"  # type: ignore[assignment]
+        assert rd.numerics_fingerprint() != here
+    finally:
+        rd.simd_level = real_simd  # type: ignore[assignment]

@@ -117,6 +117,17 @@ turn degenerate are no evidence either way: with a plain hold, a track PAH start
 roll at 11 m let its turn lapse over such frames and was published valid 0.69 m off under a
 0.15 m protection level.
 
+**A lapsing turn hands its doubt on**: the registrations are deweighted about a held turn and the
+published attitude is floored, but the live filter is not, and it keeps turning at the rate it
+had: on the generated cylinder bus (shape seed 41, reset seed 701) a track sure of a false
+0.55 deg/s roll rate turned 10 -> 18 deg off in 14 s, and when the hold lapsed it was published
+valid up to 0.15 m off at the port. When a turn lapses, the live filter's attitude about it is floored at the hold's
+sigma (the filter learnt nothing about it while it lasted), and the registrations that pin it
+now, as the probes found, set it: that run docked with no hazardous frame. (Freeing the filter's
+rate about a held turn instead, floored at the target's rate prior, or a held target's rate
+relaxing to zero as a Gauss-Markov process, ran the bus's other seeds worse: timeouts and
+hazardous frames where there were none.)
+
 **A turn that explains the scans better moves the track** (the twin monitor's switch, with its
 ``symmetry_margin`` and ``symmetry_switch_checks``): once the features that pin the turn come into
 the scans (the bus's boom at 10-15 m), the probe's far turn scores clearly above the tracked pose
@@ -271,13 +282,23 @@ class SlideMonitor:
                     self.turn_quiet = 0
                     self.hold(self.turn_axis_target, self.turn_sigma_rad, t_ref, self.turn_pivot_target)
         if ig.slide_hold_s > 0.0:
-            # A turn lapses only once symmetry_switch_checks probes in a row that ran found it
-            # pinned (no turn, or one far tighter than held): frames that leave it unobserved
-            # are no evidence either way.
-            quiet = self.turn_quiet >= self.tri.pc.symmetry_switch_checks
-            self.held = [h for h in self.held if t_ref - h.t <= ig.slide_hold_s + 1e-9
-                         or (h.pivot is not None and not quiet)]
+            self.expire(t_ref)
         return self.inflate(res)
+
+    def expire(self, t_ref: float) -> None:
+        """Drop the holds that lapse at ``t_ref`` [s]: a slide ``slide_hold_s`` after it was last
+        found; a turn then too, but only once ``symmetry_switch_checks`` probes in a row that ran
+        found it pinned (no turn, or one far tighter than held): frames that leave it unobserved
+        are no evidence either way. A lapsing turn leaves the live filter's attitude about it as
+        uncertain as the hold said (module docstring, "A lapsing turn hands its doubt on")."""
+        quiet = self.turn_quiet >= self.tri.pc.symmetry_switch_checks
+        hold_s = self.tri.pc.integrity.slide_hold_s
+        kept = [h for h in self.held if t_ref - h.t <= hold_s + 1e-9 or (h.pivot is not None and not quiet)]
+        f = self.tri.filter
+        for h in self.held:
+            if h.pivot is not None and h not in kept and f.initialized:
+                f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
+        self.held = kept
 
     def hold(self, axis_target: FloatArray, sigma: float, t: float, pivot: FloatArray | None = None) -> None:
         """Hold a slide (a turn, given its ``pivot``) found at ``t`` [s]; one of the same kind

@@ -201,6 +201,64 @@ def test_a_turn_adds_its_variance_about_its_own_axis_and_pivot() -> None:
         f.floor_turn(np.zeros(3), q, s)
 
 
+@pytest.mark.parametrize("quiet", [True, False])
+def test_a_lapsing_turn_hands_its_doubt_to_the_filter(quiet: bool) -> None:
+    """The bus of shape seed 41, reset seed 701: a track 8 deg off in roll, sure of it to
+    2.4 deg, had a free turn held (sigma 104 deg) for 14 s; the registrations, deweighted about
+    the roll and started from the prediction, taught the filter nothing about it, and when the
+    probes found the roll pinned and the hold lapsed the filter was 17 deg off under a 2 deg
+    sigma: published valid 0.15 m off at the port, the registrations that pinned the right roll
+    rejected. A lapsing turn floors the live filter's attitude about it at the hold's sigma, so
+    the registration that pins it sets the roll (17 deg off -> under 0.3 deg in one update);
+    left alone the filter rejects it. A turn the probes do not find pinned stays held and the
+    filter is left alone."""
+    cfg = _config(True)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon, f = tri.slides, tri.filter
+    hold_s = cfg.pipeline.integrity.slide_hold_s
+    T = approach_pose(cfg, target, 25.0)
+    T_off = T @ make_T(rotation_z(np.radians(17.0)))  # the track's basin, 17 deg off about the axis
+    sa = np.radians(0.05)
+    cov = np.diag([0.01**2] * 3 + [sa**2] * 3)  # a registration at 25 m
+    f.initialize(0.0, T_off, np.diag([0.01**2] * 3 + [sa**2] * 2 + [np.radians(2.4) ** 2]))
+    f.P[9:12, 9:12] = f.P_acc[9:12, 9:12] = np.eye(3) * np.radians(0.15) ** 2  # its rate learnt
+    axis_t, pivot_t, s = np.array([0.0, 0.0, 1.0]), np.zeros(3), np.pi / np.sqrt(3.0)
+    mon.hold(axis_t, s, 0.0, pivot_t)
+    mon.turn_quiet = cfg.pipeline.symmetry_switch_checks if quiet else 0
+
+    def register(t: float, T_meas: np.ndarray):  # type: ignore[no-untyped-def]
+        res = RegistrationResult(T_meas, fitness=1.0, inlier_rmse=0.003, converged=True,
+                                 iterations=5, covariance=cov)
+        return f.update(t, T_meas, mon.inflate(res).covariance)
+
+    for k in range(1, int(hold_s / 0.2)):  # the held turn's frames: ICP stays in the basin
+        t = 0.2 * k
+        assert register(t, T_off).accepted
+        mon.expire(t)
+        assert mon.turn_held()
+    e = f.R @ axis_t
+    var_held = float(e @ f.P[6:9, 6:9] @ e)
+    assert var_held < np.radians(3.5) ** 2  # the deweighted frames left it as sure as it was
+    spare = f.copy()
+    t = hold_s + 0.4
+    mon.expire(t)
+    assert mon.turn_held() is not quiet
+    var, var_acc = float(e @ f.P[6:9, 6:9] @ e), float(e @ f.P_acc[6:9, 6:9] @ e)
+    if not quiet:
+        assert var == var_held  # still held: the filter left alone
+        return
+    assert var == pytest.approx(s**2, rel=1e-6) and var_acc >= s**2 * (1 - 1e-6)
+
+    def roll_deg(g: PoseFilter) -> float:
+        return float(np.degrees(abs(Rotation.from_matrix(T[:3, :3].T @ g.R).as_rotvec()[2])))
+
+    assert f.update(t, T, cov).accepted  # the registration that pins the roll, at the truth
+    assert roll_deg(f) < 0.3
+    assert not spare.update(t, T, cov).accepted  # never floored: sure of the wrong roll
+    assert roll_deg(spare) > 16.0
+
+
 def test_a_track_that_leaves_the_approach_corridor_is_dropped_and_never_published() -> None:
     """The stock corridor (target attitude within 20 deg of the nominal) is the mission's word
     on where the target can be: a track turned 40 deg about the bus's axis (as a false roll rate

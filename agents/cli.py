@@ -8,6 +8,8 @@ input (a config, a file, a value; a refused pickle, a broken zip, an unreadable 
 exhausted by what the input asked for), 130 for Ctrl-C, 143 for SIGTERM (raised in the main
 thread as an interrupt, so worker pools shut down through their ``finally`` blocks), 1 with an
 "internal error" line for anything else. ``--debug`` (anywhere on the line) shows the traceback.
+A warning prints as one line too, ``tridar-env CMD: warning: ...``, not Python's two lines of
+source path and code (``--debug`` keeps Python's format).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import signal
 import sys
 import threading
 import traceback
+import warnings
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
 
@@ -151,11 +154,32 @@ def _quiet_broken_pipe() -> None:
         os.dup2(devnull, sys.stdout.fileno())
 
 
+@contextlib.contextmanager
+def _one_line_warnings(name: Callable[[], str], debug: bool) -> Iterator[None]:
+    """While inside, a printed warning is one line naming the command (formatting only: code
+    that records warnings, ``pytest.warns`` included, still gets the warning objects)."""
+    if debug:
+        yield
+        return
+    previous = warnings.formatwarning
+
+    def fmt(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+            line: str | None = None) -> str:
+        text = one_line(message if isinstance(message, Warning) else category(str(message)))
+        return f"{name()}: warning: {text}\n"
+
+    warnings.formatwarning = fmt
+    try:
+        yield
+    finally:
+        warnings.formatwarning = previous
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     name, debug = "tridar-env", "--debug" in argv  # until the arguments are parsed
-    with _sigterm_as_interrupt() as terminated:
+    with _sigterm_as_interrupt() as terminated, _one_line_warnings(lambda: name, debug):
         try:
             parser = build_parser()
             args = parser.parse_args(argv)

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -103,6 +104,28 @@ def test_debug_shows_the_traceback(boom, capsys, where: str) -> None:
     boom(pickle.UnpicklingError("refused"))
     assert main(argv) == 2  # the exit code does not change with --debug
     assert "Traceback" in capsys.readouterr().err
+
+
+def test_a_warning_prints_as_one_line_naming_the_command(monkeypatch) -> None:
+    """Printed warnings are one line (no source path and code line); recorded ones still reach
+    whoever records them; --debug keeps Python's format; the format is restored afterwards."""
+    seen: list[str] = []
+
+    def handler(args):
+        seen.append(warnings.formatwarning(UserWarning("mesh m.stl: 1310720 faces\nsimplified"),
+                                           UserWarning, "/src/agents/commands/scan.py", 93))
+        warnings.warn("still recorded", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setitem(COMMANDS, "warner", ("warn", lambda p: p.set_defaults(handler=handler)))
+    before = warnings.formatwarning
+    with pytest.warns(UserWarning, match="still recorded"):
+        assert main(["warner"]) == 0
+    assert seen[-1] == "tridar-env warner: warning: mesh m.stl: 1310720 faces | simplified\n"
+    assert warnings.formatwarning is before
+    with pytest.warns(UserWarning):
+        assert main(["warner", "--debug"]) == 0
+    assert seen[-1].startswith("/src/agents/commands/scan.py:93: UserWarning: mesh m.stl")
 
 
 def test_debug_is_accepted_after_nested_subcommands() -> None:

@@ -48,7 +48,7 @@ CLOSE_IN_M = 5.0  # docking interface to port [m]
 @command("check-target", "readiness report for your own spacecraft mesh: validation, symmetries, "
          "PAH build, observability map, short closed-loop campaign, verdict")
 def add(p: argparse.ArgumentParser) -> None:
-    p.add_argument("mesh", help="mesh file (STL/OBJ/PLY/GLB) or a library target name")
+    p.add_argument("mesh", help="mesh file (STL/OBJ/PLY/OFF/GLB/glTF) or a library target name")
     p.add_argument("--port", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="docking port position in the file's frame after --scale [m] (with --axis)")
     p.add_argument("--axis", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),

@@ -3,7 +3,7 @@
 A ``TargetModel`` is everything the sensor simulator, the estimators and the dynamics need to know
 about the object being approached, expressed in the **target body frame**, whose origin is the
 target's centre of mass. The library targets are built procedurally from trimesh primitives so they
-need no data files; any STL/OBJ/PLY/GLB mesh can be loaded with :func:`load_target` as well.
+need no data files; any STL/OBJ/PLY/OFF/GLB/glTF mesh can be loaded with :func:`load_target` as well.
 
 Library (envelopes are the axis-aligned extents of the mesh in the body frame, x * y * z [m]):
 

@@ -13,11 +13,15 @@ import numpy.typing as npt
 import trimesh
 
 from perception.targets.library import LIBRARY
+from perception.targets.mesh_size import triangle_bound
 from perception.targets.model import FloatArray, TargetModel, port_frame
 from perception.targets.simplify import _simplify
 from perception.targets.symmetry import find_symmetries
 
 _LIBRARY_CACHE: dict[str, TargetModel] = {}
+#: Mesh file formats read (trimesh reads archives and 2-D drawings too: an archive is a file whose
+#: size does not bound what it unpacks to).
+MESH_FORMATS = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf")
 
 
 def load_target(
@@ -32,12 +36,17 @@ def load_target(
     max_model_faces: int = 20_000,
     max_extent_m: float = 200.0,
     max_file_bytes: int = 256 * 2**20,
+    max_file_faces: int = 6_000_000,
 ) -> TargetModel:
-    """Load a library target by name, or a mesh file (STL/OBJ/PLY/GLB) through trimesh, validated.
+    """Load a library target by name, or a mesh file (STL/OBJ/PLY/OFF/GLB/glTF) through trimesh,
+    validated.
 
     Library targets are built once per process and shared (they are read-only in use); the
     keywords apply to mesh files only. A mesh file is checked before it is used:
 
+    - a format outside :data:`MESH_FORMATS`, a file over ``max_file_bytes``, or one that makes more
+      than ``max_file_faces`` triangles (bounded from its text or header, before it is read) is
+      refused;
     - non-finite vertex coordinates are refused (checked on the raw file, before trimesh's
       processing would silently drop them);
     - a mesh more than ``max_extent_m`` across is refused when ``scale`` is None or 1.0 (a config's
@@ -70,6 +79,9 @@ def load_target(
             grid costs about 0.3 ms per face to build: 20k faces ~6 s, 200k ~1 min).
         max_file_bytes: largest mesh file read (trimesh holds ~1.2 kB per face while loading;
             256 MiB is ~5M binary-STL faces, ~6 GB).
+        max_file_faces: most triangles a file may make, bounded before it is read
+            (:func:`~perception.targets.mesh_size.triangle_bound`: an OBJ face line of 8 bytes
+            or a glTF node instancing a mesh makes triangles a file size does not bound).
         max_extent_m: largest extent [m] accepted without an explicit scale other than 1.
 
     Raises:
@@ -89,6 +101,11 @@ def load_target(
         )
     if not path.is_file():
         raise FileNotFoundError(f"target mesh file {path} does not exist")
+    if path.suffix.lower() not in MESH_FORMATS:
+        raise ValueError(
+            f"target mesh file {path}: format {path.suffix!r} is not read; expected one of"
+            f" {', '.join(MESH_FORMATS)} (archives are not unpacked)"
+        )
     if scale is not None and not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale={scale} for {path}; expected a finite value > 0")
     if not (np.isfinite(port_tolerance_m) and port_tolerance_m > 0):
@@ -103,6 +120,13 @@ def load_target(
         raise ValueError(
             f"target mesh file {path} is {size / 2**20:.0f} MiB, more than max_file_bytes="
             f"{int(max_file_bytes) / 2**20:.0f} MiB; decimate it first (ICP and PAH use at most"
+            f" {int(max_model_faces)} faces anyway)"
+        )
+    bound = triangle_bound(path)
+    if bound is not None and bound > int(max_file_faces):
+        raise ValueError(
+            f"target mesh file {path} makes up to {bound:,} triangles, more than max_file_faces="
+            f"{int(max_file_faces):,}; decimate it first (ICP and PAH use at most"
             f" {int(max_model_faces)} faces anyway)"
         )
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import pickle
 import warnings
 from pathlib import Path
@@ -10,9 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from perception.shapes import generate_target, save_generated
 from perception.sensing.sensors.raycast import cast_rays
+from perception.shapes import generate_target, save_generated
 from perception.targets import ENVELOPES_M, LIBRARY, find_symmetries, has_embree, load_target
+from perception.targets.mesh_size import triangle_bound
 
 
 @pytest.mark.parametrize("name", sorted(LIBRARY))
@@ -296,6 +298,75 @@ def test_an_oversized_mesh_file_is_refused_before_it_is_read(tmp_path: Path) -> 
     trimesh.creation.icosphere(subdivisions=4).export(path)
     with pytest.raises(ValueError, match=r"big.stl is 0 MiB, more than max_file_bytes=0 MiB"):
         load_target(path, max_file_bytes=1000)
+
+
+def _triangle_files(tmp_path: Path) -> list[tuple[Path, int]]:
+    """Each test solid in every format read, with the triangles trimesh makes of it."""
+    solids = {
+        "box": trimesh.creation.box(extents=(1.0, 2.0, 3.0)),
+        "sphere": trimesh.creation.icosphere(subdivisions=4),
+        "cylinder": trimesh.creation.cylinder(radius=0.5, height=2.0, sections=37),
+    }
+    out = []
+    for name, mesh in solids.items():
+        for ext, kw in [("obj", {}), ("ply", {}), ("ply", {"encoding": "ascii"}), ("off", {}),
+                        ("glb", {}), ("gltf", {})]:
+            path = tmp_path / f"{name}_{len(out)}.{ext}"
+            mesh.export(path, **kw)
+            out.append((path, len(trimesh.load(path, force="mesh", process=False).faces)))
+    return out
+
+
+def test_triangle_bound_is_exact_on_triangles_and_bounds_polygons(tmp_path: Path) -> None:
+    for path, faces in _triangle_files(tmp_path):
+        assert triangle_bound(path) == faces, path.name
+    polygon = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0.5 1.5 0\n"
+    obj = tmp_path / "poly.obj"  # a pentagon fans into 3 triangles; a line with texture indices
+    obj.write_text(polygon + "f 1 2 3 5 4\nf 1/1 2/2 3/3\nfoo 1 2 3 4 5 6\n")
+    assert triangle_bound(obj) == 4 == len(trimesh.load(obj, force="mesh", process=False).faces)
+    ply = tmp_path / "poly.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y"
+                   "\nproperty float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+                   "end_header\n" + polygon.replace("v ", "") + "5 0 1 2 4 3\n3 0 1 2\n")
+    assert triangle_bound(ply) == 4 == len(trimesh.load(ply, force="mesh", process=False).faces)
+    off = tmp_path / "poly.off"
+    off.write_text("# exported\nOFF\n5 2 0\n" + polygon.replace("v ", "") + "5 0 1 2 4 3\n3 0 1 2\n")
+    assert triangle_bound(off) == 4
+    stl = tmp_path / "s.stl"  # at least 50 bytes a triangle: the file size bounds it
+    trimesh.creation.box().export(stl)
+    assert triangle_bound(stl) is None
+
+
+def test_a_file_making_too_many_triangles_is_refused_before_it_is_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def never(*args: object, **kw: object) -> None:
+        raise AssertionError("trimesh.load was called on a refused file")
+
+    dense = tmp_path / "dense.obj"  # 8 bytes a triangle: 2.4 MB make 300,000 of them
+    dense.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n" + "f 1 2 3\n" * 300_000)
+    fan = tmp_path / "fan.obj"  # one face line, 300,000 triangles
+    fan.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf " + " ".join(["1 2 3"] * 100_000) + " 1 2\n")
+    box = tmp_path / "box.gltf"
+    trimesh.creation.box().export(box)
+    doc = json.loads(box.read_text())
+    many = tmp_path / "instanced.gltf"  # 12 triangles reached 1000 x 1000 times through the tree
+    doc["nodes"] = [{"mesh": 0}, {"children": [0] * 1000}, {"children": [1] * 1000}]
+    doc["scenes"] = [{"nodes": [2]}]
+    many.write_text(json.dumps(doc))
+    looped = tmp_path / "looped.gltf"
+    doc["nodes"] = [{"mesh": 0, "children": [1]}, {"children": [0]}]
+    doc["scenes"] = [{"nodes": [0]}]
+    looped.write_text(json.dumps(doc))
+    archive = tmp_path / "bomb.zip"
+    archive.write_bytes(b"PK\x05\x06" + b"\x00" * 18)
+    monkeypatch.setattr(trimesh, "load", never)
+    assert "300,000 triangles, more than max_file_faces=100,000" in _one_line_refusal(
+        dense, "makes up to", max_file_faces=100_000)
+    _one_line_refusal(fan, "makes up to 300,000 triangles", max_file_faces=100_000)
+    _one_line_refusal(many, "makes up to 12,000,000 triangles, more than max_file_faces=6,000,000")
+    _one_line_refusal(looped, "node hierarchy has a cycle through node 0")
+    _one_line_refusal(archive, "format '.zip' is not read; expected one of .stl, .obj")
 
 
 def test_dense_mesh_gets_a_simplified_model_mesh(tmp_path: Path) -> None:

@@ -71,8 +71,8 @@ def _chunks(path: Path, start: int) -> Iterator[bytes]:
 
 
 def _line_tokens(chunk: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each line of a chunk that ends in a newline: its number of tokens, the byte of its
-    first token and the byte after that token (0 when the line is blank)."""
+    """For each line of a chunk that ends in a newline: its number of tokens, the first byte of
+    its first token and the byte after that one (a blank line: 0 tokens, 0 and a newline)."""
     a = np.frombuffer(chunk, dtype=np.uint8)
     newline = a == 10
     sep = _SPACE[a] | newline
@@ -262,13 +262,8 @@ def _gltf_count(path: Path, doc: dict) -> int:
             node, k = stack.pop()
             kids = nodes[node].get("children", [])
             if k == 0:
-                if state[node] == 2:
+                if state[node] == 2:  # a root reached earlier as another root's child
                     continue
-                if state[node] == 1:
-                    raise ValueError(
-                        f"target mesh file {path}: its glTF node hierarchy has a cycle through"
-                        f" node {node}; expected a tree"
-                    )
                 state[node] = 1
             if k < len(kids):
                 stack.append((node, k + 1))

@@ -126,7 +126,9 @@ def load_recording(path: str | Path, warn: Callable[[str], None] | None = None) 
             ego = d.get("ego")
             items.append(Item(
                 "frame", t=float(d["t"]), rng=d["rng"], scans=scans,
-                ego=None if ego is None else EgoMotion(np.array(ego["omega"]), np.array(ego["accel"])),
+                ego=None if ego is None else EgoMotion(
+                    np.array(ego["omega"]), np.array(ego["accel"]),
+                    None if ego.get("gravity_gradient") is None else np.array(ego["gravity_gradient"])),
                 truth=None if truth is None else np.array(truth["T_sensor_target"]),
                 sun=None if truth is None or truth["sun_direction_target"] is None
                 else np.array(truth["sun_direction_target"]),

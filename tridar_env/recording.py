@@ -191,6 +191,8 @@ class PipelineTap:
         frame: dict[str, Any] = {"t": float(t), "rng": rng_state(self.pipeline.rng), "scans": []}
         if ego is not None:
             frame["ego"] = {"omega": np.asarray(ego.omega).tolist(), "accel": np.asarray(ego.accel).tolist()}
+            if ego.gravity_gradient is not None:
+                frame["ego"]["gravity_gradient"] = np.asarray(ego.gravity_gradient).tolist()
         truth = None
         if isinstance(scene, TruthScene):
             truth = np.asarray(scene.T_sensor_target, dtype=np.float64)

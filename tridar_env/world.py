@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.config import MissionConfig
 from perception.geometry import fast_cross, fast_invert, fast_quat_to_matrix, make_T, rotation_z
-from perception.pipeline.filter import EgoMotion
+from perception.pipeline.filter import EgoMotion, gravity_gradient
 from perception.pipeline.state import TruthScene
 from perception.sensing.sensors.motion import RelativeMotion
 from perception.targets import TargetModel
@@ -88,6 +88,7 @@ def _frozen(a: FloatArray) -> FloatArray:
 
 
 _ORBIT_NORMAL = _frozen(np.array([0.0, 0.0, 1.0]))
+_RADIAL = _frozen(np.array([1.0, 0.0, 0.0]))  # LVLH +x, the zenith
 
 
 def pointing_frame(r: FloatArray) -> tuple[FloatArray, float]:
@@ -506,7 +507,10 @@ class World:
         The gyro's reading (:meth:`gyro`), and the sensor origin's inertial acceleration: the
         thrust acceleration of the last step plus the lever-arm terms of the chaser's rotation
         (``alpha x r + w x (w x r)``, with ``alpha`` the mean angular acceleration of the last
-        step), plus the accelerometer's white noise.
+        step), less the tide over the sensor's offset from the centre of mass, plus the
+        accelerometer's white noise; and the orbit's gravity gradient in the sensor axes
+        (``n^2 (3 r r^T - I)``, ``r`` the LVLH radial), which the filter needs to predict the
+        target's fall relative to the chaser.
         """
         R_cs, r = self.T_chaser_sensor[:3, :3], self.T_chaser_sensor[:3, 3]
         w = self.chaser_angular_velocity_body
@@ -515,7 +519,13 @@ class World:
         sa = self.cfg.dynamics.chaser.accel_noise_m_s2
         if sa > 0:
             a_body = a_body + self._imu_rng.normal(0.0, sa, 3)
-        return EgoMotion(R_cs.T @ self.gyro(), R_cs.T @ a_body)
+        # The tide: the host knows the local vertical in its axes (orbit and attitude
+        # determination), so the gravity gradient it hands the filter is the true one. An
+        # accelerometer at the sensor, off the centre of mass by r, also reads the tide over r
+        # (-G r): the target's acceleration relative to the sensor is then exactly G p - accel.
+        G = gravity_gradient(self.n, self.T_lvlh_sensor[:3, :3].T @ _RADIAL)
+        r_s = R_cs.T @ r
+        return EgoMotion(R_cs.T @ self.gyro(), R_cs.T @ a_body - G @ r_s, G)
 
     # ------------------------------------------------------------------ observation of truth
     def sensor_truth(self) -> SensorTruth:

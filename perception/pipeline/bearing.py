@@ -65,11 +65,17 @@ class BearingMode:
         self.last_los: FloatArray | None = None  # (3,) unit line of sight of the last bearing
 
     def _range_accel(self) -> float:
-        """The host's own acceleration along the range [m/s^2]: ``-u . a`` (accelerometer)."""
+        """The known acceleration along the range [m/s^2]: the host's own, ``-u . a``
+        (accelerometer), and the tide's, ``r u . G u`` (gravity gradient ``G``; at 1 km in low
+        orbit up to 2.6e-3 m/s^2, a steady force a range filter would otherwise lag behind)."""
         ego, u = self.tri.ego, self.last_los
         if ego is None or u is None or not self.tri.pc.ego_motion:
             return 0.0
-        return -float(u @ ego.accel)
+        a = -float(u @ ego.accel)
+        rf = self.range_filter
+        if ego.gravity_gradient is not None and rf.initialized:
+            a += rf.range * float(u @ ego.gravity_gradient @ u)
+        return a
 
     def _fuse(self, t: float, range_m: float, sigma: float) -> None:
         self.range_filter.update(t, range_m, sigma, accel=self._range_accel())

@@ -246,7 +246,7 @@ class TriDAR:
             omega = ego.omega if old is None else 0.5 * (old.omega + ego.omega)
             # E turns the step's start axes into its end's (PoseFilter._propagate): E^T back.
             turn_back = fast_rotvec_to_matrix(omega * (t - self.filter.t))
-            self.filter.set_ego(EgoMotion(omega, turn_back @ ego.accel))
+            self.filter.set_ego(EgoMotion(omega, ego.accel, ego.gravity_gradient).turned(turn_back))
             self.filter.predict(t)
         self.filter.set_ego(ego)
         self.ego = ego

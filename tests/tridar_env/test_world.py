@@ -286,3 +286,32 @@ def test_the_imus_acceleration_is_carried_in_the_axes_the_filter_predicts_in(mis
     assert errors[int(round(1.0 / w.dt)) - 1] < 2e-4
     assert errors[-1] < 4e-3
 
+
+
+@pytest.mark.parametrize(("mission", "model"), [("final_approach", "cw"), ("far_rendezvous", "cw"),
+                                                ("final_approach", "nonlinear")])
+def test_the_pipeline_filter_predicts_the_targets_fall_on_a_coast(mission: str, model: str) -> None:
+    """Coasting for two minutes, chaser and target fall differently: the tide. A filter started on
+    the truth and carried by ``take_ego`` alone follows the relative position on the IMU's
+    gravity gradient; without it (the old filter) it was off by ``n^2 r t^2 / 2``, a steady force
+    that, under the small acceleration density the missions use, held the tracked port 4-13 mm
+    behind its registrations on the final approach. Measured after 120 s: 0.25 mm against 0.44 m
+    without at 48 m (CW and nonlinear orbits alike), 7 cm against 50 m at 5.4 km."""
+    cfg = load_config(mission, dynamics__orbit__model=model)
+    from perception.pipeline import TriDAR
+
+    target = load_target(cfg.target.name)
+    w = World(cfg, target)
+    w.reset(np.random.default_rng(3))
+    tri = TriDAR(cfg, target)
+    tri.reset(np.random.default_rng(0))
+    w.step(np.zeros(3), None if not w.controlled_attitude else np.zeros(3))
+    _start_filter_on_truth(w, tri)
+    r0 = float(np.linalg.norm(w.sensor_truth().T_sensor_target[:3, 3]))
+    still = None if not w.controlled_attitude else np.zeros(3)
+    for _ in range(int(round(120.0 / w.dt))):
+        w.step(np.zeros(3), still)
+        tri.take_ego(w.t, w.sensor_ego())
+    err = float(np.linalg.norm(tri.filter.pose_at(w.t)[:3, 3] - w.sensor_truth().T_sensor_target[:3, 3]))
+    tide = 0.5 * w.n**2 * r0 * 120.0**2  # what the tide alone moves it, to within a factor 2
+    assert err < 0.01 * tide, (err, tide)

@@ -407,7 +407,7 @@ def test_published_covariance_carries_the_range_offset_and_the_scans_tilt_and_no
         u = port / np.linalg.norm(port)
         rng = float(np.linalg.norm(port))
         acc = max(cfg.accuracy_bias_m, cfg.accuracy_bias_rad * rng)  # triangulation: no TOF bias
-        # the line of sight: 3 mm in place of the 1.5 mm generic allowance, nothing else
+        # the line of sight: 3 mm in place of the generic allowance, nothing else
         d = b.covariance - a.covariance
         np.testing.assert_allclose(d[0:3, 0:3], (0.003**2 - acc**2) * np.outer(u, u), atol=1e-12)
         assert np.count_nonzero(d[3:, :]) == 0 and np.count_nonzero(d[:, 3:]) == 0

@@ -14,7 +14,7 @@ from perception.config import load_config
 from perception.estimation.registration import RegistrationResult
 from perception.geometry import make_T
 from perception.pipeline import TriDAR
-from perception.pipeline.filter import EgoMotion, RangeFilter
+from perception.pipeline.filter import EgoMotion, RangeFilter, gravity_gradient
 from perception.pipeline.state import TruthScene
 from perception.sensing.sensors import RelativeMotion
 from perception.targets import load_target
@@ -82,6 +82,32 @@ def test_range_filter_follows_known_thrust_without_lag() -> None:
     v_true = v0 + a * 398.0
     assert abs(with_acc.range_rate - v_true) < 0.05
     assert abs(without.range_rate - v_true) > 0.5
+
+
+@pytest.mark.parametrize("tide", [True, False])
+def test_bearing_range_filter_predicts_the_tide(iss, tide: bool) -> None:
+    """A target 3 km below the chaser (along the radial), both coasting: the range grows under
+    the tide alone, ``2 n^2 r`` (7.7e-3 m/s^2 here). With the IMU's gravity gradient the bearing
+    mode's range filter follows its rate; without it, it lags by far more than its noise (the
+    accelerometer reads nothing). Measured after 400 s: 1 mm/s off with it, 1.5 m/s without."""
+    tri = TriDAR(load_config("far_rendezvous"), iss)
+    tri.reset(np.random.default_rng(3))
+    bm = tri.bearing
+    u = np.array([0.0, 0.0, 1.0])  # the line of sight, along the radial
+    n = 1.13e-3
+    tri.ego = EgoMotion(np.zeros(3), np.zeros(3), gravity_gradient(n, u) if tide else None)
+    bm.last_los = u
+    rng = np.random.default_rng(1)
+    lam = math.sqrt(2.0) * n  # r'' = 2 n^2 r: r = r0 cosh(lam t) from rest
+    for k in range(200):
+        t = 2.0 * k
+        bm._fuse(t, 3000.0 * math.cosh(lam * t) + rng.normal(0.0, 2.0), 2.0)
+    v_true = 3000.0 * lam * math.sinh(lam * 398.0)
+    err = abs(bm.range_filter.range_rate - v_true)
+    if tide:
+        assert err < 0.05  # [m/s]
+    else:
+        assert err > 0.5
 
 
 def test_thermal_then_lidar_bearing_hand_over_without_a_jump(iss) -> None:

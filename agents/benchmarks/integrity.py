@@ -493,6 +493,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="only these targets (library names or generated kinds, e.g. cubesat flat_face)")
     p.add_argument("--shape-seed", type=int, default=SHAPE_SEED,
                    help=f"seed of every generated shape (default {SHAPE_SEED}, never tuned on)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="mission override on every target, nested with '.' or '__' "
+                        "(pipeline.integrity.accuracy_calibration=true); repeatable; VALUE is parsed as YAML")
     p.add_argument("--out", type=Path, default=None,
                    help="report folder (default reports/bench-integrity-<UTC time>/; a new folder)")
 
@@ -526,6 +529,9 @@ def run(args: argparse.Namespace) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     out = new_folder(args.out if args.out is not None else Path("reports") / f"bench-integrity-{stamp}")
     seeds = [args.seeds_offset + i for i in range(args.runs)]
+    from agents.commands.demo import parse_overrides
+
+    extra = parse_overrides(getattr(args, "overrides", []) or [])
     rows: list[dict[str, Any]] = []
     groups: list[tuple[str, list[RunRecord]]] = []
     per_run: list[dict[str, Any]] = []
@@ -534,7 +540,7 @@ def run(args: argparse.Namespace) -> int:
         bar = tqdm(total=len(cases) * len(seeds), desc="integrity", unit="run", mininterval=1.0)
         for case in cases:
             t0 = time.perf_counter()
-            env = make_case_env(case, "tridar")
+            env = make_case_env(case, "tridar", **extra)
             recs: list[RunRecord] = []
             try:
                 for s in seeds:
@@ -551,7 +557,9 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     all_recs = [r for _, recs in groups for r in recs]
     rows.append(summarise("total", all_recs, sum(r["wall_s"] for r in rows)))
-    print(f"integrity: stock final_approach, glideslope, perception=tridar, {args.runs} runs/target "
+    print(f"integrity: {'stock ' if not extra else ''}final_approach"
+          f"{' with ' + ', '.join(f'{k}={v}' for k, v in extra.items()) if extra else ''}, "
+          f"glideslope, perception=tridar, {args.runs} runs/target "
           f"(reset seeds {seeds[0]}..{seeds[-1]}), generated shapes seed {args.shape_seed}, "
           f"max steps {args.max_steps or 'mission'}")
     print(format_table([display_row(r) for r in rows]))
@@ -561,7 +569,7 @@ def run(args: argparse.Namespace) -> int:
     meta = {"runs": args.runs, "seeds": seeds, "shape_seed": args.shape_seed,
             "max_steps": args.max_steps, "mission": "final_approach", "controller": "glideslope",
             "perception": "tridar", "targets": [c.label for c in cases],
-            "overrides": {c.label: c.overrides for c in cases}}
+            "overrides": {c.label: {**c.overrides, **extra} for c in cases}}
     ranges = by_range(all_recs)
     print("all targets by range to the port:")
     print(format_table(ranges))

@@ -322,30 +322,14 @@ def _bin_text(b: tuple[float, float]) -> str:
 
 
 # --------------------------------------------------------------------------- (c') calibration
-#: Aspects a calibrated range, scans an aspect, and calibrated ranges (geometric from
-#: CALIBRATION_MIN_RANGE_M to 1.25 times the approach's farthest start).
-CALIBRATION_POSES, CALIBRATION_REPEATS, CALIBRATION_RANGES, CALIBRATION_MIN_RANGE_M = 12, 3, 8, 1.5
-
-
 def accuracy_calibration(cfg: Any, target: Any) -> tuple[Any, list[str]]:
     """The correlated registration error of the mission's pipeline on ``target``
-    (:func:`perception.pipeline.calibration.calibrate_accuracy`, on a fault-free copy of the
-    sensor) and the ranges where it exceeds the protection level's allowance."""
-    import numpy as np
+    (:func:`perception.pipeline.calibration.model_accuracy`: what the pipeline publishes with
+    ``integrity.accuracy_calibration``) and the ranges where it exceeds the protection level's
+    allowance."""
+    from perception.pipeline.calibration import model_accuracy
 
-    from perception.pipeline import TriDAR
-    from perception.pipeline.calibration import CALIBRATION_SEED, calibrate_accuracy, calibration_ranges
-    from perception.sensing.sensors.tridar import TriDARSensor
-
-    ini = cfg.env.initial
-    far = 1.25 * (ini.range_m + 2.0 * ini.range_dispersion_m)
-    ranges = calibration_ranges(CALIBRATION_MIN_RANGE_M, max(far, 2.0 * CALIBRATION_MIN_RANGE_M),
-                                CALIBRATION_RANGES)
-    clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
-    rng = np.random.default_rng(CALIBRATION_SEED)
-    tri = TriDAR(cfg, target, sensor=TriDARSensor(clean))
-    tri.reset(rng)
-    table = calibrate_accuracy(tri, ranges, CALIBRATION_POSES, CALIBRATION_REPEATS, rng)
+    table = model_accuracy(cfg, target)
     ig = cfg.pipeline.integrity
     over = []
     for r, a, b in zip(table.range_m, table.across_m, table.along_m, strict=True):

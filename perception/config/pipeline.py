@@ -93,6 +93,14 @@ class IntegrityConfig(StrictModel):
         "NEES 1.3-6.8 per shape (flat faces and hubble above 3); a static figure cannot fit "
         "every shape"
     )
+    accuracy_calibration: StrictBool = Field(
+        False, description="publish the correlated position error calibrated on the target's own "
+        "model (perception.pipeline.calibration.model_accuracy: simulated tracking scans along "
+        "the approach, across and along the line of sight by range, 10-25 s once per target and "
+        "settings, cached on the target) in place of accuracy_range_bias_m and "
+        "accuracy_tof_range_bias_m, over an accuracy_bias_m floor, each within the protection "
+        "level's allowance; what check-target shows"
+    )
     accuracy_lever_bias_m: Sigma = Field(
         0.0005, description="differential depth error across a scan [m] that tilts the "
         "registered pose: the published attitude carries this over the scan's lever arm (RMS "

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -90,14 +91,19 @@ class Publisher:
         tof_bias_m: the time of flight's configured range bias [m] (``sensor.tof.bias_m``): a
             frame whose points it ranged is off along the line of sight by up to its share of
             it, the same every frame (the filter cannot average it away).
+        accuracy: ``range -> (across, along)`` [m], the correlated position error at the port
+            calibrated on the target's model (``integrity.accuracy_calibration``), called at the
+            first published pose; None: the static ``integrity.accuracy_*`` figures.
     """
 
     def __init__(self, pc: PipelineConfig, r_port: FloatArray, max_pose_age: float,
-                 tof_bias_m: float = 0.0) -> None:
+                 tof_bias_m: float = 0.0,
+                 accuracy: Callable[[float], tuple[float, float]] | None = None) -> None:
         self.pc = pc
         self.r_port = r_port
         self.max_pose_age = max_pose_age
         self.tof_bias_m = abs(float(tof_bias_m))
+        self.accuracy = accuracy
         self.reset()
 
     def reset(self) -> None:
@@ -183,8 +189,18 @@ class Publisher:
         share = out.tof_share
         offset = share * ig.accuracy_tof_range_bias_m + (1.0 - share) * ig.accuracy_range_bias_m
         rb_acc = min(math.hypot(rb, offset), max(bias, rb))
-        P_acc = turn_about(_with_bias(f.accuracy_covariance(), acc, rb_acc, los), fR, r_port,
-                           (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
+        P_f = f.accuracy_covariance()
+        if self.accuracy is None:
+            P_f = _with_bias(P_f, acc, rb_acc, los)
+        else:
+            # The model's own calibration (its time-of-flight frames carry the range bias),
+            # over the generic floor, within the allowance as the static figures are.
+            across, along = self.accuracy(port_rng)
+            across = min(math.hypot(across, ig.accuracy_bias_m), bias)
+            along = min(math.hypot(along, ig.accuracy_bias_m), max(bias, rb))
+            P_f = P_f.copy()
+            P_f[0:3, 0:3] += across**2 * (np.eye(3) - los) + along**2 * los
+        P_acc = turn_about(P_f, fR, r_port, (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)
         P_int = turn_about(_with_bias(fP, bias, rb, los), fR, r_port,
                            (bias / max(out.lever_m, 1e-3)) ** 2)
         for a in blocks:

@@ -152,7 +152,8 @@ class TriDAR:
         self.twins = TwinMonitor(self)
         self.slides = SlideMonitor(self)
         self.publisher = Publisher(self.pc, self.target.T_target_port[:3, 3], self.max_pose_age,
-                                   tof_bias_m=config.sensor.tof.bias_m)
+                                   tof_bias_m=config.sensor.tof.bias_m,
+                                   accuracy=self.accuracy_at if self.pc.integrity.accuracy_calibration else None)
         self._handlers = {Mode.BEARING: self.bearing, Mode.SEARCH: self.search, Mode.TRACKING: self.tracking}
         self.reset(self.rng)
 
@@ -201,6 +202,23 @@ class TriDAR:
             mt = self.model_target
             self._pah = mt.cached(key, lambda: PAHDatabase.build(mt, self.pc.pah))
         return self._pah
+
+    @property
+    def accuracy_table(self) -> Any:
+        """The correlated registration error calibrated on this target's model for this
+        mission (:func:`perception.pipeline.calibration.model_accuracy`; once per target and
+        settings, cached on the target)."""
+        from perception.pipeline.calibration import model_accuracy
+
+        cfg = self.cfg
+        key = ("accuracy_table", cfg.sensor.model_dump_json(), cfg.pipeline.model_dump_json(),
+               cfg.env.initial.model_dump_json())
+        return self.target.cached(key, lambda: model_accuracy(cfg, self.target))
+
+    def accuracy_at(self, range_m: float) -> tuple[float, float]:
+        """(across, along) [m]: :attr:`accuracy_table` at a sensor-to-port range."""
+        across, along, _ = self.accuracy_table.at(range_m)
+        return across, along
 
     def process_noise(self) -> tuple[float, float]:
         """The filter's white acceleration and angular-acceleration densities, squared

@@ -503,3 +503,42 @@ def test_the_consistency_monitor_grows_the_bound_only_while_registrations_disagr
     assert len(off) >= 10 and len(on) == len(off)
     for a, b in zip(off, on, strict=True):
         assert a.protection_level == b.protection_level and np.array_equal(a.position, b.position)
+
+
+def test_a_calibrated_target_publishes_its_own_correlated_error_and_nothing_else() -> None:
+    """``integrity.accuracy_calibration``: the published position covariance carries the error
+    calibrated on the target's own model (across and along the line of sight at the port's
+    range, over the generic floor) in place of the static range-offset figures. Nothing else
+    moves: poses, protection levels and validity are bitwise those of the static run, and the
+    bound still covers the published covariance. The table is computed once per target and
+    settings (cached on the target)."""
+    model = generate_target("assembly", 7)
+    r = model.T_target_port[:3, 3]
+    tri_s, _, static = _track_still(model, 4.0, 20, pipeline__integrity__ambiguity_check_period_s=None)
+    tri_c, _, calib = _track_still(model, 4.0, 20, pipeline__integrity__ambiguity_check_period_s=None,
+                                   pipeline__integrity__accuracy_calibration=True)
+    assert len(static) >= 10 and len(static) == len(calib)
+    table = tri_c.accuracy_table
+    assert tri_c.accuracy_table is table  # cached on the target
+    assert sum(1 for k in model.cache if k[0] == "accuracy_table") == 1
+    ig = tri_c.pc.integrity
+    for a, b in zip(static, calib, strict=True):
+        assert np.array_equal(a.position, b.position) and np.array_equal(a.quaternion, b.quaternion)
+        assert a.protection_level == b.protection_level and a.valid == b.valid
+        R = b.T_sensor_target[:3, :3]
+        port = R @ r + b.position
+        rng = float(np.linalg.norm(port))
+        u = port / rng
+        uu = np.outer(u, u)
+        bias = max(ig.bias_m, ig.bias_rad * rng)
+        across, along, _ = table.at(rng)
+        across = min(np.hypot(across, ig.accuracy_bias_m), bias)
+        along = min(np.hypot(along, ig.accuracy_bias_m), bias)  # triangulation at 4 m: no TOF bias
+        acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * rng)
+        static_add = acc**2 * np.eye(3) + max(min(ig.accuracy_range_bias_m, bias) ** 2 - acc**2, 0.0) * uu
+        d = b.covariance - a.covariance
+        np.testing.assert_allclose(d[0:3, 0:3], across**2 * (np.eye(3) - uu) + along**2 * uu - static_add,
+                                   atol=1e-12)
+        np.testing.assert_allclose(np.delete(np.delete(d, range(3), 0), range(3), 1), 0.0, atol=1e-15)
+        assert b.protection_level >= protection_level(port_covariance(b.covariance, R, r),
+                                                      integrity_factor(ig.risk))

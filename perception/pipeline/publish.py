@@ -10,8 +10,8 @@ measurement time to the call time (what a navigation filter publishes). A pose o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np

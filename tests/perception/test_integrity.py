@@ -514,7 +514,7 @@ def test_a_calibrated_target_publishes_its_own_correlated_error_and_nothing_else
     settings (cached on the target)."""
     model = generate_target("assembly", 7)
     r = model.T_target_port[:3, 3]
-    tri_s, _, static = _track_still(model, 4.0, 20, pipeline__integrity__ambiguity_check_period_s=None)
+    _, _, static = _track_still(model, 4.0, 20, pipeline__integrity__ambiguity_check_period_s=None)
     tri_c, _, calib = _track_still(model, 4.0, 20, pipeline__integrity__ambiguity_check_period_s=None,
                                    pipeline__integrity__accuracy_calibration=True)
     assert len(static) >= 10 and len(static) == len(calib)

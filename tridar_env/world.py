@@ -1,5 +1,8 @@
 """The truth simulation behind the environment: relative orbit, target and chaser attitude, mass.
 
+Long module: one truth state (orbit, attitudes, mass, the IMU that reads it) that every reader
+shares through the same cached views.
+
 Everything here is truth. The environment hands the sensor a :class:`~perception.pipeline.state.TruthScene`
 built from it and exposes it in ``info`` for logging; observations never read it directly.
 

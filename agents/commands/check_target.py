@@ -324,12 +324,12 @@ def _bin_text(b: tuple[float, float]) -> str:
 # --------------------------------------------------------------------------- (c') calibration
 def accuracy_calibration(cfg: Any, target: Any) -> tuple[Any, list[str]]:
     """The correlated registration error of the mission's pipeline on ``target``
-    (:func:`perception.pipeline.calibration.model_accuracy`: what the pipeline publishes with
+    (``TriDAR.accuracy_table``: what the pipeline publishes with
     ``integrity.accuracy_calibration``) and the ranges where it exceeds the protection level's
     allowance."""
-    from perception.pipeline.calibration import model_accuracy
+    from perception.pipeline import TriDAR
 
-    table = model_accuracy(cfg, target)
+    table = TriDAR(cfg, target).accuracy_table
     ig = cfg.pipeline.integrity
     over = []
     for r, a, b in zip(table.range_m, table.across_m, table.along_m, strict=True):

@@ -95,7 +95,7 @@ class IntegrityConfig(StrictModel):
     )
     accuracy_calibration: StrictBool = Field(
         False, description="publish the correlated position error calibrated on the target's own "
-        "model (perception.pipeline.calibration.model_accuracy: simulated tracking scans along "
+        "model (TriDAR.accuracy_table, perception.pipeline.calibration: simulated tracking scans along "
         "the approach, across and along the line of sight by range, 10-25 s once per target and "
         "settings, cached on the target) in place of accuracy_range_bias_m and "
         "accuracy_tof_range_bias_m, over an accuracy_bias_m floor, each within the protection "

@@ -53,13 +53,13 @@ if TYPE_CHECKING:
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["CALIBRATION_SEED", "AccuracyTable", "calibrate_accuracy", "calibration_ranges",
-           "model_accuracy"]
+__all__ = ["CALIBRATION_SEED", "AccuracyTable", "approach_ranges", "calibrate_accuracy",
+           "calibration_ranges"]
 
 #: Seed of the calibration's own generator (the calibration is the model's, not an episode's).
 CALIBRATION_SEED = 20261205
 #: Aspects a calibrated range, scans an aspect, calibrated ranges (geometric from
-#: MIN_RANGE_M to 1.25 times the approach's farthest start): what :func:`model_accuracy` takes.
+#: MIN_RANGE_M to 1.25 times the approach's farthest start): what ``TriDAR.accuracy_table`` takes.
 #: With 12 aspects by 3 scans the figures of one range scattered by a factor 2 between seeds.
 POSES, REPEATS, RANGES, MIN_RANGE_M = 48, 4, 8, 1.5
 #: Lateral dispersion of the port across the line of sight: this fraction of the range [-].
@@ -228,20 +228,10 @@ def calibrate_accuracy(tri: TriDAR, ranges_m: FloatArray, poses: int, repeats: i
     )
 
 
-def model_accuracy(cfg: Any, target: Any) -> AccuracyTable:
-    """The correlated error of ``cfg``'s pipeline on ``target`` (:func:`calibrate_accuracy` at
-    :data:`POSES` aspects by :data:`REPEATS` scans, from :data:`MIN_RANGE_M` to 1.25 times the
-    approach's farthest start), on a fault-free copy of the mission's sensor and from
-    :data:`CALIBRATION_SEED`: the same model and settings give the same table. About 10-25 s a
-    target; the pipeline caches it on the target (``integrity.accuracy_calibration``)."""
-    from perception.pipeline.tridar import TriDAR
-    from perception.sensing.sensors.tridar import TriDARSensor
 
+def approach_ranges(cfg: Any) -> FloatArray:
+    """The ranges a target is calibrated at for ``cfg``'s mission: :data:`RANGES` of them,
+    geometric from :data:`MIN_RANGE_M` to 1.25 times the approach's farthest start."""
     ini = cfg.env.initial
     far = 1.25 * (ini.range_m + 2.0 * ini.range_dispersion_m)
-    ranges = calibration_ranges(MIN_RANGE_M, max(far, 2.0 * MIN_RANGE_M), RANGES)
-    clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
-    rng = np.random.default_rng(CALIBRATION_SEED)
-    tri = TriDAR(cfg, target, sensor=TriDARSensor(clean))
-    tri.reset(rng)
-    return calibrate_accuracy(tri, ranges, POSES, REPEATS, rng)
+    return calibration_ranges(MIN_RANGE_M, max(far, 2.0 * MIN_RANGE_M), RANGES)

@@ -1,5 +1,9 @@
 """Relative-motion filters of the TriDAR pipeline.
 
+Long module: the pose filter's motion model (ego motion, tide, tumble), update, floors and two
+covariances act on one state and are read together; the host's motion it takes and the bearing
+mode's range filter sit beside it.
+
 :class:`PoseFilter` is an error-state (multiplicative) extended Kalman filter over pose
 measurements ``T_sensor_target`` with the ICP covariance as measurement noise. Its state is the
 target's relative position ``p`` and velocity ``v`` (sensor frame), attitude ``R_sensor_target``

@@ -206,14 +206,26 @@ class TriDAR:
     @property
     def accuracy_table(self) -> Any:
         """The correlated registration error calibrated on this target's model for this
-        mission (:func:`perception.pipeline.calibration.model_accuracy`; once per target and
-        settings, cached on the target)."""
-        from perception.pipeline.calibration import model_accuracy
+        mission (:func:`perception.pipeline.calibration.calibrate_accuracy` at
+        ``calibration.POSES`` aspects by ``REPEATS`` scans over ``approach_ranges``), on a
+        fault-free copy of the mission's sensor and from ``CALIBRATION_SEED``: the same model
+        and settings give the same table. 10-25 s once per target and settings (cached on the
+        target); what ``tridar-env check-target`` shows and ``integrity.accuracy_calibration``
+        publishes."""
+        from perception.pipeline import calibration as cal
 
         cfg = self.cfg
         key = ("accuracy_table", cfg.sensor.model_dump_json(), cfg.pipeline.model_dump_json(),
                cfg.env.initial.model_dump_json())
-        return self.target.cached(key, lambda: model_accuracy(cfg, self.target))
+
+        def build() -> Any:
+            clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
+            rng = np.random.default_rng(cal.CALIBRATION_SEED)
+            tri = TriDAR(cfg, self.target, sensor=TriDARSensor(clean))
+            tri.reset(rng)
+            return cal.calibrate_accuracy(tri, cal.approach_ranges(cfg), cal.POSES, cal.REPEATS, rng)
+
+        return self.target.cached(key, build)
 
     def accuracy_at(self, range_m: float) -> tuple[float, float]:
         """(across, along) [m]: :attr:`accuracy_table` at a sensor-to-port range."""

@@ -215,11 +215,11 @@ class TriDAR:
         from perception.pipeline import calibration as cal
 
         cfg = self.cfg
-        key = ("accuracy_table", cfg.sensor.model_dump_json(), cfg.pipeline.model_dump_json(),
+        clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
+        key = ("accuracy_table", clean.model_dump_json(), cfg.pipeline.model_dump_json(),
                cfg.env.initial.model_dump_json())
 
         def build() -> Any:
-            clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
             rng = np.random.default_rng(cal.CALIBRATION_SEED)
             tri = TriDAR(cfg, self.target, sensor=TriDARSensor(clean))
             tri.reset(rng)
@@ -250,8 +250,11 @@ class TriDAR:
     def prepare(self) -> None:
         """Build what search needs now rather than in the first search frame: the PAH database and
         the target's near-symmetries (about 1 s for the ISS-like port; once per process and target,
-        cached on the target)."""
+        cached on the target), and with ``integrity.accuracy_calibration`` the model's accuracy
+        table (:attr:`accuracy_table`, 10-25 s)."""
         self.pah.near_symmetries()
+        if self.pc.integrity.accuracy_calibration:
+            _ = self.accuracy_table
 
     # ------------------------------------------------------------------ the frame
     def take_ego(self, t: float, ego: EgoMotion) -> None:

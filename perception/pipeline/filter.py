@@ -27,7 +27,7 @@ angular velocity ``W``, both in sensor coordinates, and over a step ``dt``
 with ``E = exp(-omega_s dt)`` the sensor frame's own turn and ``a = G p - a_s`` the target's
 acceleration relative to the sensor: the tide ``G p`` of the gravity gradient (``EgoMotion``'s
 ``gravity_gradient``, from the host's orbit and attitude knowledge) less the sensor's own. Left
-out, the tide (``n^2 r``, 2-4e-5 m/s^2 at 10-20 m in low orbit) is a steady force that a filter
+out, the tide (``n^2 r`` to ``2 n^2 r``, 1-5e-5 m/s^2 at 10-20 m in low orbit) is a steady force that a filter
 with a small acceleration density follows with a lag: on the stock final approach the filtered
 port was 4-13 mm behind (the ISS-like port) or 4-9 mm ahead (hubble, whose port faces another
 way in LVLH) of unbiased registrations along the line of sight, an error the same every frame

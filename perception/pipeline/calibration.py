@@ -85,8 +85,9 @@ class AccuracyTable:
     Attributes:
         range_m: (K,) increasing sensor-to-port ranges [m].
         across_m: (K,) 1-sigma per axis across the line of sight at the port [m].
-        along_m: (K,) 1-sigma along the line of sight at the port [m] (the time of flight's
-            range bias included where it ranged).
+        along_m: (K,) 1-sigma along the line of sight at the port [m] (on a sensor without
+            the time of flight's configured range bias, which the filter's accuracy covariance
+            carries: ``TriDAR.accuracy_table``).
         attitude_rad: (K,) 1-sigma per axis of the attitude, turned about the port [rad].
             Each NaN at a range where no aspect's registrations observed it.
         samples: (K, 3) aspects that observed the line of sight, an axis across it (the more

@@ -53,8 +53,14 @@ errors that repeat from frame to frame, not noise the filter averages, so ``P`` 
 them without describing the error the state has. ``P_acc`` (the accuracy covariance) is the
 covariance of the same state under the same gains with the registrations' own noise alone
 (``cov_acc`` of :meth:`PoseFilter.update`; the Joseph form holds for any gain): what the filter
-averaged away of ICP's noise. The publisher adds the correlated errors to it
-(:mod:`perception.pipeline.publish`). ``P_acc`` never feeds back into the state.
+averaged away of ICP's noise. It also carries the time of flight's range offset
+(``range_bias_m``, the sensor's configured bias) as a consider parameter (Schmidt's): one
+offset shared by every time-of-flight registration, which the gains take into the state while
+the time of flight ranges and let go at their own pace once triangulation takes over. Added
+after the fact instead, as the frame's share of it, the published covariance had lost it at the
+switch (near 7 m on the stock approach) while the state still held 1-4 mm of it for the next
+metre. The publisher adds the shape's correlated errors (:mod:`perception.pipeline.publish`).
+``P_acc`` never feeds back into the state.
 """
 
 from __future__ import annotations
@@ -183,6 +189,9 @@ class PoseFilter:
             position and velocity that matter at the port. Inputs and outputs
             (:meth:`initialize`, :meth:`update`, :meth:`pose_at`, :meth:`target_state`) are always
             about the target origin; ``p, v, R, w, P`` are the internal reference-point state.
+        range_bias_m: 1-sigma of a range offset common to the registrations' time-of-flight
+            points [m] (the sensor's calibration residual, ``sensor.tof.bias_m``): a consider
+            parameter of ``P_acc`` only (the class doc's "Two covariances").
     """
 
     def __init__(
@@ -194,7 +203,10 @@ class PoseFilter:
         gate_chi2: float = CHI2_6_999,
         ref_point: npt.ArrayLike | None = None,
         inertia: npt.ArrayLike | None = None,
+        range_bias_m: float = 0.0,
     ) -> None:
+        if not (np.isfinite(range_bias_m) and range_bias_m >= 0):
+            raise ValueError(f"range_bias_m={range_bias_m}; expected a finite value >= 0 [m]")
         for name, val in (("accel_psd", accel_psd), ("angacc_psd", angacc_psd),
                           ("init_velocity_sigma", init_velocity_sigma),
                           ("init_rate_sigma", init_rate_sigma), ("gate_chi2", gate_chi2)):
@@ -225,6 +237,8 @@ class PoseFilter:
         self.W = np.zeros(3)  # inertial angular velocity of the target, sensor coordinates
         self.P = np.eye(12)
         self.P_acc = np.eye(12)
+        self.range_bias_var = float(range_bias_m) ** 2
+        self.c_acc = np.zeros(12)  # covariance of P_acc's error with the range offset [m^2...]
         self.ego_omega = np.zeros(3)
         self.ego_accel = np.zeros(3)
         self.ego_gradient = np.zeros((3, 3))  # the tide: target acceleration G p (EgoMotion)
@@ -298,14 +312,20 @@ class PoseFilter:
     def initialize(
         self, t: float, T_sensor_target: FloatArray, cov_pose: FloatArray,
         velocity: FloatArray | None = None, omega: FloatArray | None = None,
-        cov_acc: FloatArray | None = None,
+        cov_acc: FloatArray | None = None, tof_share: float = 0.0,
     ) -> None:
         """Start from a pose (and optionally rates), with ``cov_pose`` (6, 6) over (dp, dtheta);
         all about the target origin (velocity of the origin, rate in the sensor frame).
-        ``cov_acc``: the pose's accuracy covariance (``P_acc``; default ``cov_pose``)."""
+        ``cov_acc``: the pose's accuracy covariance (``P_acc``; default ``cov_pose``).
+        ``tof_share``: the fraction of its points the time of flight ranged (their common range
+        offset, ``range_bias_m``, is in the pose as it is)."""
         T_sensor_target = np.asarray(T_sensor_target, dtype=np.float64)
         self.P_acc = self._initial_P(self._to_ref(T_sensor_target, cov_pose if cov_acc is None else cov_acc)[1])
         T_ref, cov_pose = self._to_ref(T_sensor_target, cov_pose)
+        # The pose is the measurement: its error holds the range offset in full.
+        h = self._bias_row(T_ref[:3, 3], tof_share)
+        self.c_acc = self.range_bias_var * h
+        self.P_acc = self.P_acc + self.range_bias_var * np.outer(h, h)
         self.t = float(t)
         self.p = T_ref[:3, 3].copy()
         self.R = T_ref[:3, :3].copy()
@@ -429,16 +449,18 @@ class PoseFilter:
         self.p, self.u, self.R, self.W = p, u, R, W
         self.P = F @ self.P @ F.T + Q
         self.P_acc = F @ self.P_acc @ F.T + Q
+        self.c_acc = F @ self.c_acc
         self.t = float(t)
 
     # ------------------------------------------------------------------ update
     def update(self, t: float, T_meas: FloatArray, cov_pose: FloatArray,
-               cov_acc: FloatArray | None = None) -> UpdateResult:
+               cov_acc: FloatArray | None = None, tof_share: float = 0.0) -> UpdateResult:
         """Fuse a pose measurement taken at time ``t`` with covariance ``cov_pose`` over (dp, dtheta).
 
         Innovations beyond the chi-square gate are rejected (the state is only predicted).
         ``cov_acc``: the measurement's own noise for ``P_acc`` (default ``cov_pose``); it never
-        changes the gain.
+        changes the gain. ``tof_share``: the fraction of the registration's points the time of
+        flight ranged, which carry the common range offset (``range_bias_m``) into ``P_acc``.
         """
         self.predict(t)
         T_meas = np.asarray(T_meas, dtype=np.float64)
@@ -484,9 +506,30 @@ class PoseFilter:
         self.P = I_KH @ self.P @ I_KH.T + K @ cov_pose @ K.T  # Joseph form: stays SPD
         self.P = 0.5 * (self.P + self.P.T)
         R_acc = cov_pose if R_acc is None else R_acc
-        self.P_acc = I_KH @ self.P_acc @ I_KH.T + K @ R_acc @ K.T  # the same gain, ICP's noise
+        # The same gain on ICP's noise and on the range offset the time-of-flight points share,
+        # the same every frame (a consider parameter, Schmidt's): the error after the update
+        # is (I - K H) e + K h b + K v, b the offset, h its direction in the measurement.
+        Kh = K @ self._bias_row(T_meas[:3, 3], tof_share)[_POSE_IDX]
+        A_c = I_KH @ self.c_acc
+        self.P_acc = (I_KH @ self.P_acc @ I_KH.T + K @ R_acc @ K.T
+                      + np.outer(A_c, Kh) + np.outer(Kh, A_c) + self.range_bias_var * np.outer(Kh, Kh))
         self.P_acc = 0.5 * (self.P_acc + self.P_acc.T)
+        self.c_acc = A_c + self.range_bias_var * Kh
         return UpdateResult(True, d2)
+
+    @staticmethod
+    def _bias_row(p_ref: FloatArray, tof_share: float) -> FloatArray:
+        """(12,) error of the state that a unit range offset of a registration puts in it (the
+        pose block only): its time-of-flight points (``tof_share`` of them) move along their
+        rays, the registered pose along the line of sight to the reference point ``p_ref``."""
+        s = float(tof_share)
+        if not (np.isfinite(s) and 0.0 <= s <= 1.0):
+            raise ValueError(f"tof_share={tof_share}; expected a fraction in [0, 1]")
+        h = np.zeros(12)
+        n = float(np.linalg.norm(p_ref))
+        if s > 0.0 and n > 0.0:
+            h[0:3] = s * p_ref / n
+        return h
 
     def rate_doubt(self, T_meas: FloatArray, since_t: float) -> FloatArray:
         """The velocity [m/s] and angular-rate [rad/s] errors, (6,), that alone would explain how

@@ -33,6 +33,7 @@ import numpy.typing as npt
 from perception.config import FlashLidarConfig, MissionConfig
 from perception.estimation.flashtrack import make_flash_tracker
 from perception.numeric import median
+from perception.pipeline.publish import tof_share
 from perception.pipeline.state import Mode, TruthScene
 from perception.pipeline.tracking import TrackingMode
 from perception.pipeline.tridar import TriDAR
@@ -102,7 +103,7 @@ class FlashTrackingMode(TrackingMode):
         verdict = tri.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
                                   res.T_sensor_target, None)
         if verdict.good:
-            verdict = self._update(t_ref, res, expected, verdict)
+            verdict = self._update(t_ref, res, expected, verdict, tof_share(cloud.subsystem))
         if verdict.good and tri.n_updates > 0:
             sub = tri.subset(cloud, tri.twin_points)
             tri.twins.monitor(sub.points, sub, res, t_ref, tri.pc.icp)

@@ -90,7 +90,9 @@ class Publisher:
         max_pose_age: age [s] beyond which a measurement is no longer published as valid.
         tof_bias_m: the time of flight's configured range bias [m] (``sensor.tof.bias_m``): a
             frame whose points it ranged is off along the line of sight by up to its share of
-            it, the same every frame (the filter cannot average it away).
+            it, the same every frame (the filter cannot average it away): the protection
+            level's allowance along the line of sight (the published covariance has it from the
+            filter's accuracy covariance, ``PoseFilter``'s ``range_bias_m``).
         accuracy: ``range -> (across, along)`` [m], the correlated position error at the port
             calibrated on the target's model (``integrity.accuracy_calibration``), called at the
             first published pose; None: the static ``integrity.accuracy_*`` figures.
@@ -183,21 +185,22 @@ class Publisher:
         acc = max(ig.accuracy_bias_m, ig.accuracy_bias_rad * port_rng)
         bias = max(ig.bias_m, ig.bias_rad * port_rng)
         rb = out.tof_share * self.tof_bias_m
-        # Along the line of sight the published covariance carries the time of flight's range
-        # bias and ICP's range offset on the shape (never beyond the integrity allowance there),
-        # and over the scan's lever arm a differential depth error's tilt, turned about the port.
+        # The filter's accuracy covariance carries the time of flight's range bias as the
+        # registrations put it into the state, frame by frame (PoseFilter's range_bias_m). On
+        # top of it, along the line of sight: ICP's range offset on the shape (never beyond the
+        # integrity allowance there), and over the scan's lever arm a differential depth
+        # error's tilt, turned about the port.
         share = out.tof_share
         offset = share * ig.accuracy_tof_range_bias_m + (1.0 - share) * ig.accuracy_range_bias_m
-        rb_acc = min(math.hypot(rb, offset), max(bias, rb))
         P_f = f.accuracy_covariance()
         if self.accuracy is None:
-            P_f = _with_bias(P_f, acc, rb_acc, los)
+            P_f = _with_bias(P_f, acc, min(offset, bias), los)
         else:
-            # The model's own calibration (its time-of-flight frames carry the range bias),
-            # over the generic floor, within the allowance as the static figures are.
+            # The model's own calibration (on a sensor without the range bias the filter
+            # carries), over the generic floor, within the allowance as the static figures are.
             across, along = self.accuracy(port_rng)
             across = min(math.hypot(across, ig.accuracy_bias_m), bias)
-            along = min(math.hypot(along, ig.accuracy_bias_m), max(bias, rb))
+            along = min(math.hypot(along, ig.accuracy_bias_m), bias)
             P_f = P_f.copy()
             P_f[0:3, 0:3] += across**2 * (np.eye(3) - los) + along**2 * los
         P_acc = turn_about(P_f, fR, r_port, (ig.accuracy_lever_bias_m / max(out.lever_m, 1e-3)) ** 2)

@@ -132,9 +132,10 @@ class SearchMode:
             tri.stats.reacquired_from_track += 1
             tri.filter.initialize(t_ref, res.T_sensor_target, cov,
                                   velocity=from_track.target_state()[1], omega=from_track.w,
-                                  cov_acc=cov_acc)
+                                  cov_acc=cov_acc, tof_share=tof_share(cloud.subsystem))
         else:
-            tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc)
+            tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc,
+                                  tof_share=tof_share(cloud.subsystem))
         tri.lost_track = None
         tri.tracking.clear_rejects()
         tri.tracking.nis.clear()  # a new track: its own registrations judge it

@@ -190,7 +190,7 @@ class TrackingMode:
         verdict = tri.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
                                   res.T_sensor_target, None)
         if verdict.good:
-            verdict = self._update(t_ref, res, expected, verdict)
+            verdict = self._update(t_ref, res, expected, verdict, tof_share(cloud.subsystem))
         if verdict.good and tri.n_updates > 0:
             tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
             tri.slides.switch(pts, cloud, t_ref)
@@ -279,13 +279,14 @@ class TrackingMode:
         return lost
 
     def _update(self, t_ref: float, res: RegistrationResult, expected: float,
-                verdict: FrameVerdict) -> FrameVerdict:
-        """The filter's update on a good registration; the frame's verdict after it."""
+                verdict: FrameVerdict, share: float) -> FrameVerdict:
+        """The filter's update on a good registration (``share``: of its points the time of
+        flight ranged); the frame's verdict after it."""
         tri = self.tri
         cov = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc)
         cov_acc = measurement_cov(res, tri.target.T_target_port[:3, 3], tri.pc, floors=False)
         tri.slides.loosen(tri.filter)
-        upd = tri.filter.update(t_ref, res.T_sensor_target, cov, cov_acc)
+        upd = tri.filter.update(t_ref, res.T_sensor_target, cov, cov_acc, tof_share=share)
         if tri.pc.integrity.consistency_window_frames is not None:
             self.nis.append(min(upd.mahalanobis2, NIS_CAP))
         if upd.accepted:
@@ -301,7 +302,7 @@ class TrackingMode:
         # basin each frame: the roll of a near-cylindrical bus 20-40 deg off under a 2 deg
         # sigma) are not a track to restart on: they count towards loss of track.
         self.gate_rejects += 1
-        self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov, cov_acc)]
+        self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov, cov_acc, share)]
         self.rejected = self.rejected[-tri.pc.filter_reinit_frames:]
         restart = None
         if self.gate_rejects >= tri.pc.filter_reinit_frames and not res.degenerate_axes:
@@ -327,7 +328,7 @@ class TrackingMode:
         one restarted on those before it; else None."""
         v_origin = f.target_state()[1]
         g = f.copy()
-        (t0, T0, C0, A0), *rest = self.rejected
+        (t0, T0, C0, A0, s0), *rest = self.rejected
         # The rates are kept, but not as sure as before: a wrong rate is one reason the gate
         # rejects (a cylinder bus's track took a 1.5 deg/s false roll rate from a slow basin
         # change; five restarts that kept it with its small covariance each drifted the roll
@@ -336,14 +337,14 @@ class TrackingMode:
         # (After the rejected registrations have been checked against one another with the
         # rates as they were: doubted first, any two would pass.)
         doubt = f.rate_doubt(self.rejected[-1][1], self.tri.last_pose_t)
-        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w, cov_acc=A0)
+        g.initialize(t0, T0, C0, velocity=v_origin, omega=f.w, cov_acc=A0, tof_share=s0)
         P, P_acc = g.P.copy(), g.P_acc.copy()
         for rates in (slice(3, 6), slice(9, 12)):
             P[rates, rates] = f.P[rates, rates]
             P_acc[rates, rates] = f.P_acc[rates, rates]
         g.P, g.P_acc = P, P_acc
-        for t_k, T_k, C_k, A_k in rest:
-            if not g.update(t_k, T_k, C_k, A_k).accepted:
+        for t_k, T_k, C_k, A_k, s_k in rest:
+            if not g.update(t_k, T_k, C_k, A_k, tof_share=s_k).accepted:
                 return None
         for name in ("P", "P_acc"):
             M = getattr(g, name).copy()

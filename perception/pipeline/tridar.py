@@ -165,7 +165,8 @@ class TriDAR:
         inertia = self.target.inertia if self.pc.target_rotation == "torque_free" else None
         self.filter = PoseFilter(*self.process_noise(),
                                  init_rate_sigma=math.radians(self.pc.initial_rate_sigma_deg_s),
-                                 ref_point=self.target.T_target_port[:3, 3], inertia=inertia)
+                                 ref_point=self.target.T_target_port[:3, 3], inertia=inertia,
+                                 range_bias_m=abs(self.cfg.sensor.tof.bias_m))
         self.ego: EgoMotion | None = None
         self.logic.reset(0.0)
         self.sensor.frame_counter = 0
@@ -215,7 +216,10 @@ class TriDAR:
         from perception.pipeline import calibration as cal
 
         cfg = self.cfg
-        clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)()})
+        # Fault-free, and without the time of flight's configured range offset: the filter's
+        # accuracy covariance carries that one (PoseFilter's range_bias_m), frame by frame.
+        clean = cfg.sensor.model_copy(update={"faults": type(cfg.sensor.faults)(),
+                                              "tof": cfg.sensor.tof.model_copy(update={"bias_m": 0.0})})
         key = ("accuracy_table", clean.model_dump_json(), cfg.pipeline.model_dump_json(),
                cfg.env.initial.model_dump_json())
 

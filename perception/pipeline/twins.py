@@ -26,6 +26,7 @@ import numpy.typing as npt
 
 from perception.config import ICPConfig
 from perception.estimation.registration import RegistrationResult, icp
+from perception.pipeline.publish import tof_share
 from perception.pipeline.tracking import measurement_cov
 from perception.sensing.pointcloud import PointCloud
 
@@ -172,7 +173,8 @@ class TwinMonitor:
         r_port = tri.target.T_target_port[:3, 3]
         f.initialize(t_ref, best_res.T_sensor_target, measurement_cov(best_res, r_port, tri.pc),
                      velocity=v_origin, omega=f.w,
-                     cov_acc=measurement_cov(best_res, r_port, tri.pc, floors=False))
+                     cov_acc=measurement_cov(best_res, r_port, tri.pc, floors=False),
+                     tof_share=tof_share(cloud.subsystem))
         tri.last_result = best_res
         tri.stats.symmetry_switches += 1
         tri.n_updates = max(tri.n_updates, 3)

@@ -139,7 +139,7 @@ def test_a_turn_that_scores_better_probe_after_probe_moves_the_track(monkeypatch
                         RegistrationResult(T, fitness=1.0, inlier_rmse=0.003, converged=True, iterations=5,
                                            covariance=res.covariance))
     tri.filter.initialize(0.0, T, np.eye(6) * 1e-6)
-    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None})()
+    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None, "subsystem": np.zeros(5, np.int8)})()
     pts = np.zeros((5, 3))
     period = cfg.pipeline.integrity.turn_check_period_s
     n = cfg.pipeline.symmetry_switch_checks
@@ -336,7 +336,7 @@ def test_a_far_turn_that_loses_probe_after_probe_is_ruled_out(monkeypatch, rule_
     monkeypatch.setattr(slides, "icp", stub_icp)
     monkeypatch.setattr(tri.tracking, "outline_refine", lambda r, p, c: r)
     tri.filter.initialize(0.0, T, np.eye(6) * 1e-6)
-    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None})()
+    cloud = type("C", (), {"sigma": np.full(5, 0.01), "directions": None, "subsystem": np.zeros(5, np.int8)})()
     pts = np.zeros((5, 3))
 
     def probe(k: int) -> float:

@@ -293,10 +293,13 @@ class SlideMonitor:
         uncertain as the hold said (module docstring, "A lapsing turn hands its doubt on")."""
         quiet = self.turn_quiet >= self.tri.pc.symmetry_switch_checks
         hold_s = self.tri.pc.integrity.slide_hold_s
-        kept = [h for h in self.held if t_ref - h.t <= hold_s + 1e-9 or (h.pivot is not None and not quiet)]
-        f = self.tri.filter
+        kept, lapsed = [], []
         for h in self.held:
-            if h.pivot is not None and h not in kept and f.initialized:
+            stays = t_ref - h.t <= hold_s + 1e-9 or (h.pivot is not None and not quiet)
+            (kept if stays else lapsed).append(h)
+        f = self.tri.filter
+        for h in lapsed:
+            if h.pivot is not None and f.initialized:
                 f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
         self.held = kept
 

@@ -201,6 +201,28 @@ def test_a_turn_adds_its_variance_about_its_own_axis_and_pivot() -> None:
         f.floor_turn(np.zeros(3), q, s)
 
 
+def test_a_lapsing_turn_beside_a_held_slide_hands_its_doubt_on() -> None:
+    """Both monitors on (``final_approach``'s turn checks with ``slide_check_period_s`` set, as
+    a user may): a turn hold lapsing while a slide found later stays held used to stop the run
+    (``expire`` compared the holds' arrays with ``in``: "truth value of an array ... is
+    ambiguous", hubble at 2 s). The turn's doubt reaches the filter; the slide stays held."""
+    cfg = load_config("final_approach", pipeline__integrity__slide_check_period_s=1.0)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon, f = tri.slides, tri.filter
+    hold_s = cfg.pipeline.integrity.slide_hold_s
+    sa = np.radians(0.05)
+    f.initialize(0.0, approach_pose(cfg, target, 25.0), np.diag([0.01**2] * 3 + [sa**2] * 3))
+    axis_t, s = np.array([0.0, 0.0, 1.0]), np.radians(30.0)
+    mon.hold(axis_t, s, 0.0, np.zeros(3))
+    mon.hold(np.array([1.0, 0.0, 0.0]), 0.02, hold_s)  # a slide found later: still held
+    mon.turn_quiet = cfg.pipeline.symmetry_switch_checks  # the probes found the turn pinned
+    mon.expire(hold_s + 0.4)
+    assert [h.pivot is None for h in mon.held] == [True]
+    e = f.R @ axis_t
+    assert float(e @ f.P[6:9, 6:9] @ e) == pytest.approx(s**2, rel=1e-6)
+
+
 @pytest.mark.parametrize("quiet", [True, False])
 def test_a_lapsing_turn_hands_its_doubt_to_the_filter(quiet: bool) -> None:
     """The bus of shape seed 41, reset seed 701: a track 8 deg off in roll, sure of it to

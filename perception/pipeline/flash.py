@@ -100,16 +100,17 @@ class FlashTrackingMode(TrackingMode):
         tri.last_result = res
         tri.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), tri.pc.measurement_floor_m)
+        share = tof_share(cloud.subsystem)
         verdict = tri.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
                                   res.T_sensor_target, None)
         if verdict.good:
-            verdict = self._update(t_ref, res, expected, verdict, tof_share(cloud.subsystem))
+            verdict = self._update(t_ref, res, expected, verdict, share)
         if verdict.good and tri.n_updates > 0:
             sub = tri.subset(cloud, tri.twin_points)
             tri.twins.monitor(sub.points, sub, res, t_ref, tri.pc.icp)
             if tri.slides.switch(cloud.points, cloud, t_ref):
                 tracker.reset()  # the tracker starts again on the moved track's pose
-        if self.conclude(cloud, cloud.points, t, t_ref, res, verdict):
+        if self.conclude(cloud, cloud.points, t, t_ref, res, verdict, share):
             tracker.reset()
 
 

@@ -128,14 +128,14 @@ class SearchMode:
             s = floor * float(np.linalg.norm(res.T_sensor_target[:3, 3]))
             cov = cov + np.diag([s * s] * 3 + [0.0] * 3)
             cov_acc = cov_acc + np.diag([s * s] * 3 + [0.0] * 3)
+        share = tof_share(cloud.subsystem)
         if from_track is not None:
             tri.stats.reacquired_from_track += 1
             tri.filter.initialize(t_ref, res.T_sensor_target, cov,
                                   velocity=from_track.target_state()[1], omega=from_track.w,
-                                  cov_acc=cov_acc, tof_share=tof_share(cloud.subsystem))
+                                  cov_acc=cov_acc, tof_share=share)
         else:
-            tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc,
-                                  tof_share=tof_share(cloud.subsystem))
+            tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc, tof_share=share)
         tri.lost_track = None
         tri.tracking.clear_rejects()
         tri.tracking.nis.clear()  # a new track: its own registrations judge it
@@ -150,7 +150,7 @@ class SearchMode:
         tri.search_started = None
         tri.logic.go(t, Mode.TRACKING, f"acquired (fitness {res.fitness:.2f})")
         return FrameOutput(tri.busy_until, Mode.TRACKING, "pose", t_ref, len(cloud), fitness=res.fitness,
-                           lever_m=lever(cloud.points), tof_share=tof_share(cloud.subsystem),
+                           lever_m=lever(cloud.points), tof_share=share,
                            bearing=out.bearing, range_m=out.range_m, range_rate=out.range_rate,
                            filt=tri.filter.copy(), n_updates=tri.n_updates,
                            ambiguity_m=tri.twins.ambiguity_m)

@@ -184,13 +184,14 @@ class TrackingMode:
         tri.last_result = res
         tri.stats.registration_time_s.append(res.time_s)
         expected = max(median(cloud.sigma), tri.pc.measurement_floor_m)
+        share = tof_share(cloud.subsystem)
         # With a running filter the consistency test is its innovation gate, which weighs each
         # direction by the registration's covariance: a pose that slides along a direction the
         # geometry leaves unobservable (degenerate_axes) is not a jump, it is uninformative.
         verdict = tri.logic.judge(res.converged, res.fitness, res.inlier_rmse, expected,
                                   res.T_sensor_target, None)
         if verdict.good:
-            verdict = self._update(t_ref, res, expected, verdict, tof_share(cloud.subsystem))
+            verdict = self._update(t_ref, res, expected, verdict, share)
         if verdict.good and tri.n_updates > 0:
             tri.twins.monitor(pts, cloud, res, t_ref, icp_cfg)
             tri.slides.switch(pts, cloud, t_ref)
@@ -198,7 +199,7 @@ class TrackingMode:
         if outside is not None:
             verdict = FrameVerdict(False, outside)
             self.drop(t, outside)
-        self.conclude(cloud, pts, t, t_ref, res, verdict)
+        self.conclude(cloud, pts, t, t_ref, res, verdict, share)
 
     def outside_corridor(self, t_ref: float) -> str | None:
         """Why the track's pose at ``t_ref`` [s] is outside the mission's approach corridor (its
@@ -261,9 +262,10 @@ class TrackingMode:
         return None
 
     def conclude(self, cloud: PointCloud, pts: FloatArray, t: float, t_ref: float,
-                 res: RegistrationResult, verdict: FrameVerdict) -> bool:
+                 res: RegistrationResult, verdict: FrameVerdict, share: float) -> bool:
         """Record the frame's verdict (loss of track), queue its output (the pose, with the
-        frame's bearing fix); True when the track was lost."""
+        frame's bearing fix; ``share``: of its points the time of flight ranged); True when the
+        track was lost."""
         tri = self.tri
         lost = tri.logic.record(t, verdict)
         self.after_loss(lost, t)
@@ -271,7 +273,7 @@ class TrackingMode:
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
                           consistency=self.consistency(), turn_confirmed=tri.slides.turn_confirmed,
-                          tof_share=tof_share(cloud.subsystem))
+                          tof_share=share)
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         out.bearing_source = bfix.bearing_source

@@ -125,6 +125,15 @@ class IntegrityConfig(StrictModel):
         "new track at 33 m followed ICP's false roll basin 12 deg off, published valid 0.22 m off "
         "under a 0.19 m bound, while the right basin's registrations were rejected) (None: off)"
     )
+    rival_votes: Annotated[Int, Field(ge=1, le=1000)] | None = Field(
+        None, description="rival monitor (perception.pipeline.rivals): a sound registration the "
+        "filter's gate rejects is a rival pose (the track's, moved onto it along the directions "
+        "it observes) until this many accepted registrations have ruled it out beyond the gate; "
+        "meanwhile the protection level grows by the port's offset to it (registrations that "
+        "disagree with the track are evidence the track may be the wrong one: a PAH restart close "
+        "in on hubble's aft face took a false basin 10 cm off in its plane and was published "
+        "valid 9 cm off under a 5 cm bound between two rejections of the right basin) (None: off)"
+    )
     ambiguity_margin: PositiveFloat = Field(
         0.05, description="a twin whose PAH score is within this of the tracked pose's, or "
         "better, makes the pose ambiguous"

@@ -466,20 +466,7 @@ class PoseFilter:
         T_meas = np.asarray(T_meas, dtype=np.float64)
         R_acc = None if cov_acc is None else self._to_ref(T_meas, cov_acc)[1]
         T_meas, cov_pose = self._to_ref(T_meas, cov_pose)
-        z = np.concatenate([
-            T_meas[:3, 3] - self.p,
-            fast_matrix_to_rotvec(T_meas[:3, :3] @ self.R.T),
-        ])
-        H = np.zeros((6, 12))
-        H[0:3, 0:3] = np.eye(3)
-        H[3:6, 6:9] = np.eye(3)
-        S = H @ self.P @ H.T + cov_pose
-        S = 0.5 * (S + S.T)
-        try:
-            Sinv_z = np.linalg.solve(S, z)
-        except np.linalg.LinAlgError:
-            return UpdateResult(False, float("inf"))
-        d2 = float(z @ Sinv_z)
+        z, H, S, d2 = self._innovation(T_meas, cov_pose)
         if not np.isfinite(d2) or d2 > self.gate:
             return UpdateResult(False, d2)
         K = np.linalg.solve(S, H @ self.P).T
@@ -516,6 +503,52 @@ class PoseFilter:
         self.P_acc = 0.5 * (self.P_acc + self.P_acc.T)
         self.c_acc = A_c + self.range_bias_var * Kh
         return UpdateResult(True, d2)
+
+    def _innovation(self, T_ref: FloatArray, cov_ref: FloatArray
+                    ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+        """``(z, H, S, d2)`` of a pose measurement at the reference point (``T_ref``, its
+        covariance ``cov_ref``) against the state as it is: the innovation (dp, dtheta), the
+        measurement matrix, the innovation covariance and the gate's statistic (inf when ``S``
+        is singular)."""
+        z = np.concatenate([
+            T_ref[:3, 3] - self.p,
+            fast_matrix_to_rotvec(T_ref[:3, :3] @ self.R.T),
+        ])
+        H = np.zeros((6, 12))
+        H[0:3, 0:3] = np.eye(3)
+        H[3:6, 6:9] = np.eye(3)
+        S = H @ self.P @ H.T + cov_ref
+        S = 0.5 * (S + S.T)
+        try:
+            Sinv_z = np.linalg.solve(S, z)
+        except np.linalg.LinAlgError:
+            return z, H, S, float("inf")
+        return z, H, S, float(z @ Sinv_z)
+
+    def mahalanobis2(self, t: float, T_meas: FloatArray, cov_pose: FloatArray) -> float:
+        """The gate's statistic of a pose measurement taken at ``t`` (>= the filter's time) with
+        covariance ``cov_pose``, both about the target origin, without fusing it (the filter is
+        left as it is)."""
+        f = self.copy()
+        f.predict(t)
+        T_ref, cov_ref = f._to_ref(np.asarray(T_meas, dtype=np.float64), cov_pose)
+        return f._innovation(T_ref, cov_ref)[3]
+
+    def moved_to(self, T_meas: FloatArray, cov_pose: FloatArray) -> PoseFilter:
+        """A copy of the filter, at its time, with its pose moved onto the measurement
+        ``T_meas`` (target origin, taken at the filter's time) along every direction
+        ``cov_pose`` observes; along those it leaves unobserved (variance beyond
+        ``UNOBSERVED_VARIANCE``, where a degenerate registration's pose is wherever ICP left
+        it) the pose stays the filter's. Rates and covariances are the filter's."""
+        T_ref, cov_ref = self._to_ref(np.asarray(T_meas, dtype=np.float64), cov_pose)
+        z = self._innovation(T_ref, cov_ref)[0]
+        lam, V = np.linalg.eigh(0.5 * (cov_ref + cov_ref.T))
+        O = V[:, lam <= UNOBSERVED_VARIANCE]
+        dz = O @ (O.T @ z)
+        g = self.copy()
+        g.p = self.p + dz[0:3]
+        g.R = fast_rotvec_to_matrix(dz[3:6]) @ self.R
+        return g
 
     @staticmethod
     def _bias_row(p_ref: FloatArray, tof_share: float) -> FloatArray:

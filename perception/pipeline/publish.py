@@ -58,6 +58,7 @@ class FrameOutput:
     tof_share: float = 0.0  # fraction of the frame's points the time-of-flight ranged
     consistency: float = 1.0  # variance scale from the registrations' disagreement with the filter
     turn_confirmed: bool = True  # the turn monitor has judged the track (SlideMonitor.turn_confirmed)
+    rival_m: float = 0.0  # port offset to a rejected registration not yet ruled out [m] (RivalMonitor)
 
 
 def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
@@ -214,6 +215,7 @@ class Publisher:
         pl = protection_level(port_covariance(P_int, fR, r_port), integrity_factor(ig.risk))
         pl *= math.sqrt(out.consistency)  # registrations that keep disagreeing with the filter
         pl += out.ambiguity_m  # the port may be where a twin the scan allows puts it
+        pl += out.rival_m  # or where a registration the filter rejected puts it
         al = alert_limit(port_rng, ig.alert_limit_m, ig.alert_limit_range_m)
         kw.update(protection_level=pl, alert_limit=al)
         # A track is trusted once confirmed by a few accepted frames (its rates estimated; an

@@ -137,6 +137,7 @@ class SearchMode:
         else:
             tri.filter.initialize(t_ref, res.T_sensor_target, cov, cov_acc=cov_acc, tof_share=share)
         tri.lost_track = None
+        tri.rivals.reset()  # a new track: its own registrations judge it
         tri.tracking.clear_rejects()
         tri.tracking.nis.clear()  # a new track: its own registrations judge it
         tri.n_updates = 1

@@ -273,7 +273,7 @@ class TrackingMode:
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
                           consistency=self.consistency(), turn_confirmed=tri.slides.turn_confirmed,
-                          tof_share=share)
+                          tof_share=share, rival_m=tri.rivals.offset_m(tri.filter))
         bfix = tri.bearing.fix(cloud, t)
         out.bearing, out.range_m, out.range_rate = bfix.bearing, bfix.range_m, bfix.range_rate
         out.bearing_source = bfix.bearing_source
@@ -292,6 +292,7 @@ class TrackingMode:
         if tri.pc.integrity.consistency_window_frames is not None:
             self.nis.append(min(upd.mahalanobis2, NIS_CAP))
         if upd.accepted:
+            tri.rivals.accepted(t_ref, res.T_sensor_target, cov)
             self.clear_rejects()
             tri.n_updates += 1
             tri.last_pose_t = t_ref
@@ -304,6 +305,7 @@ class TrackingMode:
         # basin each frame: the roll of a near-cylindrical bus 20-40 deg off under a 2 deg
         # sigma) are not a track to restart on: they count towards loss of track.
         self.gate_rejects += 1
+        tri.rivals.rejected(tri.filter, res.T_sensor_target, cov)
         self.rejected = [*self.rejected, (t_ref, res.T_sensor_target, cov, cov_acc, share)]
         self.rejected = self.rejected[-tri.pc.filter_reinit_frames:]
         restart = None
@@ -312,6 +314,7 @@ class TrackingMode:
         if restart is None:
             return tri.logic.judge(True, res.fitness, res.inlier_rmse, expected,
                                    res.T_sensor_target, None, filter_accepted=False)
+        tri.rivals.replaced(tri.filter)
         tri.filter = restart
         self.clear_rejects()
         tri.stats.filter_reinits += 1
@@ -367,6 +370,7 @@ class TrackingMode:
                 tri.lost_track = tri.filter.copy() if sound else None
                 tri.twins.track_lost()
             tri.filter.reset()
+            tri.rivals.reset()
             tri.n_updates = 0
             tri.search_started = t
 

@@ -11,8 +11,9 @@ busy, so the frame rate follows from scan time plus processing. The configured l
 :class:`TriDAR` is the frame loop: each frame goes to the handler of the current mode
 (:mod:`~perception.pipeline.bearing`, :mod:`~perception.pipeline.search`,
 :mod:`~perception.pipeline.tracking`), which share the pipeline's filter and track bookkeeping; the
-ambiguity monitor (:mod:`~perception.pipeline.twins`) and the publisher
-(:mod:`~perception.pipeline.publish`) are collaborators.
+ambiguity monitor (:mod:`~perception.pipeline.twins`), the slide monitor
+(:mod:`~perception.pipeline.slides`), the rival monitor (:mod:`~perception.pipeline.rivals`) and
+the publisher (:mod:`~perception.pipeline.publish`) are collaborators.
 
 Output timing: :meth:`TriDAR.step` returns the newest output available at the call time, with the
 filter state propagated from its measurement time to the call time (what a navigation filter
@@ -38,6 +39,7 @@ from perception.pipeline.filter import EgoMotion, PoseFilter
 from perception.pipeline.modes import ModeLogic, corridor_constraint
 from perception.pipeline.observability import ScanPlanner
 from perception.pipeline.publish import Publisher
+from perception.pipeline.rivals import RivalMonitor
 from perception.pipeline.search import SearchMode
 from perception.pipeline.state import Mode, StateVector, TruthScene
 from perception.pipeline.tracking import TrackingMode, deskew
@@ -100,7 +102,7 @@ class TriDAR:
     """The TriDAR box: call :meth:`step` once per frame with the truth scene (or a cloud).
 
     The mode handlers (``bearing``, ``search``, ``tracking``) and the collaborators (``twins``,
-    the ambiguity monitor; ``publisher``) work on the state kept here: the filter, the track's
+    the ambiguity monitor; ``slides``; ``rivals``; ``publisher``) work on the state kept here: the filter, the track's
     bookkeeping (``n_updates``: accepted updates of the track; ``lost_track``: the filter of the
     last lost track, for reacquisition; ``search_started``), the frame timing and the last cloud
     and registration.
@@ -151,6 +153,7 @@ class TriDAR:
         self.tracking = TrackingMode(self)
         self.twins = TwinMonitor(self)
         self.slides = SlideMonitor(self)
+        self.rivals = RivalMonitor(self)
         self.publisher = Publisher(self.pc, self.target.T_target_port[:3, 3], self.max_pose_age,
                                    tof_bias_m=config.sensor.tof.bias_m,
                                    accuracy=self.accuracy_at if self.pc.integrity.accuracy_calibration else None)
@@ -179,7 +182,7 @@ class TriDAR:
         self.n_updates = 0
         self.lost_track: PoseFilter | None = None
         self.accepted_fitness = 1.0  # fitness of the track's last accepted registration
-        for part in (*self._handlers.values(), self.twins, self.slides, self.publisher):
+        for part in (*self._handlers.values(), self.twins, self.slides, self.rivals, self.publisher):
             part.reset()
         if self.planner is not None:
             self.planner.reset()

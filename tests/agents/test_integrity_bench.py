@@ -14,6 +14,7 @@ from agents.benchmarks.integrity import (
     effective_count,
     fly,
     library_case,
+    los_split,
     make_case_env,
     nees,
     nees_band,
@@ -52,6 +53,10 @@ def test_short_approach_docks_without_misleading_frames(short_env):
     assert np.all(rec.pl_m > 0) and np.all(rec.al_m > 0)
     assert np.isfinite(np.nanmean(rec.nees_pos)) and np.isfinite(np.nanmean(rec.nees_att))
     assert np.isfinite(rec.nees_pos).mean() > 0.9
+    # along and across the line of sight: finite wherever the position's NEES is
+    fin = np.isfinite(rec.nees_pos)
+    assert np.all(np.isfinite(rec.nees_los[fin])) and np.all(np.isfinite(rec.nees_across[fin]))
+    assert np.all(rec.nees_los[fin] >= 0) and np.all(rec.nees_across[fin] >= 0)
     s = rec.summary()
     assert s["hmi"] == 0 and s["frames"] == rec.frames
 
@@ -101,6 +106,22 @@ def test_nees_of_a_known_error():
     assert math.isnan(nees(np.ones(3), np.diag([1.0, 1.0, 0.0])))  # nothing to normalise by
 
 
+def test_los_split_of_a_known_error():
+    """Along the line of sight to the port and across it, each on its marginal."""
+    port = np.array([0.0, 0.0, 10.0])
+    C = np.diag([4.0, 1.0, 0.25])
+    n_l, n_x = los_split(np.array([2.0, 1.0, 0.5]), C, port)
+    assert n_l == pytest.approx(1.0) and n_x == pytest.approx(2.0)
+    # a turned line of sight: the split follows it, not the sensor axes
+    u = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)
+    v = np.array([1.0, 0.0, -1.0]) / math.sqrt(2.0)
+    w = np.array([0.0, 1.0, 0.0])
+    C = 9.0 * np.outer(u, u) + np.outer(v, v) + 4.0 * np.outer(w, w)
+    n_l, n_x = los_split(3.0 * u + 2.0 * v + 2.0 * w, C, 7.0 * u)
+    assert n_l == pytest.approx(1.0) and n_x == pytest.approx(4.0 + 1.0)
+    assert math.isnan(los_split(np.ones(3), np.diag([1.0, 1.0, 0.0]), port)[0])  # nothing along it
+
+
 def test_summary_counts_hmi_mi_and_nees_by_hand():
     a = _record("docked", err=[0.01, 0.2, 0.05], pl=[0.02, 0.1, 0.01], degraded=[False, False, True],
                 nees_pos=[3.0, 1.0, np.nan])
@@ -142,3 +163,8 @@ def test_by_range_bins_frames_by_true_range():
     assert sum(r["frames"] for r in rows.values()) == 4
     assert rows["5-10"]["NEES pos"] == 2.0 and rows["2-5"]["NEES att"] == 3.0
     assert math.isnan(rows["0-2"]["NEES pos"]) and rows["0-2"]["NEES att"] == 1.0
+    assert math.isnan(rows["5-10"]["NEES pos along LOS (1)"])  # not recorded: NaN, not 0
+    rec.nees_los, rec.nees_across = np.array([0.5, 1.5, 0.2, 1.0]), np.array([3.0, 0.5, 1.0, np.nan])
+    rows = {r["range [m]"]: r for r in by_range([rec])}
+    assert rows["5-10"]["NEES pos along LOS (1)"] == 1.5 and rows["> 20"]["NEES pos across (2)"] == 3.0
+    assert math.isnan(rows["0-2"]["NEES pos across (2)"])

@@ -128,6 +128,18 @@ rate about a held turn instead, floored at the target's rate prior, or a held ta
 relaxing to zero as a Gauss-Markov process, ran the bus's other seeds worse: timeouts and
 hazardous frames where there were none.)
 
+**A turn the scans stop seeing is carried** (``Held.carried``): a free turn found on a track
+whose probes had pinned it (``symmetry_switch_checks`` probes in a row on this track, with no
+turn held) is the scans no longer seeing what pins it, not evidence that it is wrong. It is held
+as any turn (the registrations are deweighted about it, so they teach the filter nothing there),
+but neither the published attitude nor, when it lapses, the live filter is floored at it: the
+filter's continuity carries it, as through frames that report the turn degenerate themselves,
+its covariance growing with its rate's. A generated cylinder bus (shape seed 9595) whose boom
+had pinned its roll for 300 s showed only its end face inside 4 m; held free, the off-axis port's
+bound went to 2-10 m, 2 mm off, and 0 of 4 approaches docked. Found again while carried, it stays
+carried; on a track the probes had not pinned (a new one, or one that had just found a turn), it
+is held and floored as above.
+
 **A turn that explains the scans better moves the track** (the twin monitor's switch, with its
 ``symmetry_margin`` and ``symmetry_switch_checks``): once the features that pin the turn come into
 the scans (the bus's boom at 10-15 m), the probe's far turn scores clearly above the tracked pose
@@ -173,12 +185,15 @@ _FREE_TURN_RAD = math.pi / math.sqrt(3.0)
 class Held(NamedTuple):
     """A held slide: ``axis`` (3,) unit [target frame], ``sigma`` (1-sigma [m], or [rad] for a
     turn), ``t`` the time it was found [s], and for a turn the ``pivot`` (3,) its axis passes
-    through [target frame, m] (None: a slide of the position)."""
+    through [target frame, m] (None: a slide of the position). ``carried``: a free turn found on
+    a track whose probes had pinned it (module doc, "A turn the scans stop seeing"): the
+    registrations are deweighted about it, and the filter's continuity carries it."""
 
     axis: FloatArray
     sigma: float
     t: float
     pivot: FloatArray | None = None
+    carried: bool = False
 
 
 def _turn_twist(R: FloatArray, h: Held) -> FloatArray:
@@ -218,6 +233,7 @@ class SlideMonitor:
         self.pending_switch: RegistrationResult | None = None
         self.turn_leads = np.empty((0, 3))  # the last probes' leads: near pushes, best far turn
         self.turn_quiet = 0  # probes in a row that ran and found no turn
+        self.track_quiet = 0  # the same on this track (since its start or its last move)
         self._far_wait = 0  # probes before the far turns are looked at again
         self.axis_target: FloatArray | None = None
         self.sigma_m = 0.0
@@ -232,6 +248,7 @@ class SlideMonitor:
         the aspect, which a restart does not change)."""
         self.checked_t = self.turn_checked_t = -np.inf
         self.turn_leads = np.empty((0, 3))
+        self.track_quiet = 0
 
     @property
     def turn_confirmed(self) -> bool:
@@ -278,9 +295,17 @@ class SlideMonitor:
                 held = self._held_turn(self.turn_axis_target)
                 if held is not None and self.turn_sigma_rad < held.sigma / 3.0:
                     self.turn_quiet += 1  # pinned far tighter than held: evidence it is pinned
+                    self.track_quiet += 1
                 else:
-                    self.turn_quiet = 0
-                    self.hold(self.turn_axis_target, self.turn_sigma_rad, t_ref, self.turn_pivot_target)
+                    # A free turn on a track the probes had pinned (a carried hold goes on
+                    # being carried): the scans stopped seeing what pins it (module doc).
+                    carried = self.turn_sigma_rad >= _FREE_TURN_RAD and (
+                        held.carried if held is not None else (
+                            self.track_quiet >= self.tri.pc.symmetry_switch_checks
+                            and self.turn_confirmed and not self.turn_held()))
+                    self.turn_quiet = self.track_quiet = 0
+                    self.hold(self.turn_axis_target, self.turn_sigma_rad, t_ref, self.turn_pivot_target,
+                              carried=carried)
         if ig.slide_hold_s > 0.0:
             self.expire(t_ref)
         return self.inflate(res)
@@ -299,17 +324,20 @@ class SlideMonitor:
             (kept if stays else lapsed).append(h)
         f = self.tri.filter
         for h in lapsed:
-            if h.pivot is not None and f.initialized:
+            if h.pivot is not None and f.initialized and not h.carried:
                 f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
         self.held = kept
 
-    def hold(self, axis_target: FloatArray, sigma: float, t: float, pivot: FloatArray | None = None) -> None:
+    def hold(self, axis_target: FloatArray, sigma: float, t: float, pivot: FloatArray | None = None,
+             carried: bool = False) -> None:
         """Hold a slide (a turn, given its ``pivot``) found at ``t`` [s]; one of the same kind
-        along a held axis (within 20 deg) merges into it at the larger sigma."""
-        new = Held(axis_target, sigma, t, pivot)
+        along a held axis (within 20 deg) merges into it at the larger sigma, carried only if
+        both are."""
+        new = Held(axis_target, sigma, t, pivot, carried)
         for i, h in enumerate(self.held):
             if (h.pivot is None) == (pivot is None) and abs(float(h.axis @ axis_target)) >= _MERGE_COS:
-                self.held[i] = h._replace(t=t) if h.sigma >= sigma else new
+                kept = h._replace(t=t) if h.sigma >= sigma else new
+                self.held[i] = kept._replace(carried=h.carried and carried)
                 return
         self.held.append(new)
 
@@ -463,6 +491,7 @@ class SlideMonitor:
                 s_turn = _FREE_TURN_RAD
         if s_turn <= 0.0:
             self.turn_quiet += 1
+            self.track_quiet += 1
             return True
         self.turns += 1
         if s_turn < _FREE_TURN_RAD and alts[k_far].converged:
@@ -504,6 +533,7 @@ class SlideMonitor:
         self.tri.twins.move_track(alt, pts, cloud, t_ref)
         self.turn_switches += 1
         self.turn_leads = np.empty((0, 3))  # judged again from the new pose
+        self.track_quiet = 0
         return True
 
     def loosen(self, f: PoseFilter) -> None:
@@ -525,7 +555,7 @@ class SlideMonitor:
             for h in self.held:
                 if h.pivot is None:
                     f.floor_position(f.R @ h.axis, h.sigma)
-                else:
+                elif not h.carried:
                     f.floor_turn(f.R @ h.axis, self._pivot(f, h.pivot), h.sigma)
         return f
 

@@ -187,3 +187,38 @@ def test_a_track_in_a_false_basin_is_not_published_valid_while_the_right_basin_k
         assert hazards >= 10 and valid >= hazards
         hazards, _ = _false_basin_run(3, seed)
         assert hazards == 0
+
+
+def test_a_standing_rival_moves_with_the_host_as_the_track_does() -> None:
+    """A rival is the same target seen from the same host: the host's thrust, which the track's
+    filter takes from the accelerometer, carries the rival too, and the port offset between the
+    two stays what it was when the rival stood. (Left on the motion it had then, a rival that
+    stood before a burn went 1 m off the track over the burn: all of it on the protection level.)"""
+    from perception.pipeline import TriDAR, approach_pose
+    from perception.pipeline.filter import EgoMotion
+    from perception.shapes import generate_target
+
+    cfg = load_config("final_approach")
+    assert cfg.pipeline.ego_motion and cfg.pipeline.integrity.rival_votes is not None
+    target = generate_target("assembly", 7)
+    tri = TriDAR(cfg, target)
+    T0 = approach_pose(cfg, target, 5.0)
+    still = EgoMotion(np.zeros(3), np.zeros(3))
+    tri.take_ego(0.0, still)
+    tri.filter.initialize(0.0, T0, _cov())
+    for k in range(1, 41):
+        tri.take_ego(0.2 * k, still)
+        assert tri.filter.update(0.2 * k, T0, _cov()).accepted
+    t = 8.0
+    off = make_T(np.eye(3), [0.0, 0.10, 0.0])
+    tri.rivals.rejected(tri.filter, off @ T0, _cov())
+    assert tri.rivals.offset_m(tri.filter) == pytest.approx(0.10, abs=1e-9)
+    # a 10 s burn of 2 cm/s^2 along the boresight, then 10 s of coasting, the sensor turning slowly
+    for k in range(1, 101):
+        t = 8.0 + 0.2 * k
+        accel = np.array([0.0, 0.0, 0.02]) if k <= 50 else np.zeros(3)
+        tri.take_ego(t, EgoMotion(np.array([0.0, 0.002, 0.0]), accel))
+        assert tri.rivals.offset_m(tri.filter) == pytest.approx(0.10, abs=2e-4)
+    assert tri.rivals.rival is not None and tri.rivals.rival.t == tri.filter.t == pytest.approx(t)
+    # the host's motion moved both: the track is metres from where it stood
+    assert np.linalg.norm(tri.filter.pose_at(t)[:3, 3] - T0[:3, 3]) > 1.0

@@ -442,3 +442,60 @@ def test_a_confirmed_track_turning_faster_than_the_corridor_allows_is_dropped(ra
     else:
         assert tri.stats.corridor_exits == exits and not reasons
         assert tri.mode == Mode.TRACKING
+
+
+@pytest.mark.parametrize("pinned", [True, False])
+def test_a_free_turn_on_a_track_the_probes_had_pinned_is_carried(monkeypatch, pinned: bool) -> None:
+    """The bus of shape seed 9595 at 3.8 m: the scans see its end face only, the roll that a boom
+    had pinned for 300 s is free to them, and held free (104 deg) on the published attitude it
+    put the off-axis port's protection level at 2-10 m while the pose was 2 mm off: 0 of 4
+    approaches docked. A free turn found on a track whose probes had pinned it is carried: the
+    registrations are deweighted about it as for any held turn (they teach the filter nothing
+    about it), but neither the published attitude nor, when it lapses, the live filter is floored
+    at it; the filter's continuity carries it. On a track the probes had not pinned (a new one,
+    or one that had just found a turn) it is held and floored as before."""
+    cfg = _config(True)
+    target = generate_target("cylinder_bus", SHAPE_SEED)
+    tri = TriDAR(cfg, target)
+    mon, f = tri.slides, tri.filter
+    n = cfg.pipeline.symmetry_switch_checks
+    T = approach_pose(cfg, target, 4.0)
+    sa = np.radians(0.05)
+    cov = np.diag([0.001**2] * 3 + [sa**2] * 3)
+    f.initialize(0.0, T, cov)
+    axis_t = np.array([0.0, 0.0, 1.0])
+    free = np.pi / np.sqrt(3.0)
+
+    def probe_turn(pts, cloud, res, icp_cfg):  # type: ignore[no-untyped-def]
+        mon.turn_probes += 1
+        mon.turn_leads = np.vstack([mon.turn_leads.reshape(-1, 3), np.zeros(3)])[-n:]
+        mon.turn_axis_target, mon.turn_pivot_target, mon.turn_sigma_rad = axis_t, np.zeros(3), free
+        return True
+
+    monkeypatch.setattr(mon, "probe_turn", probe_turn)
+    mon.start()
+    if pinned:  # n probes on this track found the roll pinned
+        mon.turn_leads = np.full((n, 3), -1.0)
+        mon.track_quiet = mon.turn_quiet = n
+    res = RegistrationResult(T, fitness=1.0, inlier_rmse=0.002, converged=True, iterations=5, covariance=cov)
+    out = mon.apply(np.zeros((0, 3)), None, res, 2.0, tri.logic.icp_config_for(np.zeros(0, dtype=np.int8)), 50)
+    held = mon._held_turn(axis_t)
+    assert held is not None and held.sigma == free and held.carried is pinned
+    assert mon.track_quiet == 0
+    e = T[:3, :3] @ axis_t
+    # the registration is deweighted about the turn either way
+    assert float(e @ out.covariance[3:, 3:] @ e) == pytest.approx(sa**2 + free**2)
+    # the published attitude is floored at the free turn only on a track never pinned
+    var_pub = float(e @ mon.pin(f.copy()).P[6:9, 6:9] @ e)
+    var_f = float(e @ f.P[6:9, 6:9] @ e)
+    assert var_pub == pytest.approx(var_f if pinned else free**2, rel=1e-9)
+    # found again while carried: still carried
+    mon.apply(np.zeros((0, 3)), None, res, 2.0 + cfg.pipeline.integrity.turn_check_period_s,
+              tri.logic.icp_config_for(np.zeros(0, dtype=np.int8)), 51)
+    assert mon._held_turn(axis_t).carried is pinned  # type: ignore[union-attr]
+    # when it lapses, the live filter is floored at it only if it was not carried
+    mon.turn_quiet = n
+    mon.expire(1e3)
+    assert not mon.turn_held()
+    var_after = float(e @ f.P[6:9, 6:9] @ e)
+    assert var_after == pytest.approx(var_f if pinned else free**2, rel=1e-9)

@@ -1,5 +1,8 @@
 """Integrity of the published state vector in closed loop, on the library and on generated shapes.
 
+Long module: one benchmark's cases, per-frame record, summary statistics (NEES bands over
+correlated frames), tables, files and plot, each used only here.
+
 What a navigation sensor promises is not a small error but an error inside the bound it publishes
 (DESIGN.md, "Integrity"). The glideslope controller flies the stock ``final_approach`` mission on
 the full TriDAR pipeline (``perception="tridar"``) against each target: the library's ``cubesat``,

@@ -206,12 +206,10 @@ def los_split(error: FloatArray, cov: FloatArray, port: FloatArray) -> tuple[flo
     """The NEES of a position ``error`` (3,) under ``cov`` (3, 3) along the line of sight to
     ``port`` (3,; sensor frame) and across it, each on its marginal (1 and 2 dof: means 1 and 2
     when honest). NaN where that marginal is not positive definite."""
-    u = np.asarray(port, dtype=np.float64)
-    u = u / np.linalg.norm(u)
-    a = np.eye(3)[int(np.argmin(np.abs(u)))]
-    b1 = np.cross(u, a)
-    b1 /= np.linalg.norm(b1)
-    B = np.stack([b1, np.cross(u, b1)])
+    from perception.pipeline.calibration import los_basis
+
+    u, *across = los_basis(np.asarray(port, dtype=np.float64))
+    B = np.stack(across)
     C = 0.5 * (cov + cov.T)
     return nees(np.array([u @ error]), np.array([[u @ C @ u]])), nees(B @ error, B @ C @ B.T)
 

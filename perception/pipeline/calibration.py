@@ -64,7 +64,7 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["CALIBRATION_SEED", "AccuracyTable", "approach_ranges", "calibrate_accuracy",
-           "calibration_ranges"]
+           "calibration_ranges", "los_basis"]
 
 #: Seed of the calibration's own generator (the calibration is the model's, not an episode's).
 CALIBRATION_SEED = 20261205
@@ -134,7 +134,7 @@ def _turn(rng: np.random.Generator, sigma_rad: float) -> FloatArray:
     return fast_rotvec_to_matrix(rng.normal(0.0, sigma_rad, 3))
 
 
-def _los_basis(port: FloatArray) -> FloatArray:
+def los_basis(port: FloatArray) -> FloatArray:
     """(3, 3) rows: the line of sight to ``port`` and two unit vectors across it."""
     u = port / np.linalg.norm(port)
     a = np.eye(3)[int(np.argmin(np.abs(u)))]
@@ -192,7 +192,7 @@ def calibrate_accuracy(tri: TriDAR, ranges_m: FloatArray, poses: int, repeats: i
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = port - R @ r_port
-            B = _los_basis(port)
+            B = los_basis(port)
             comps, seen = [], np.ones(6, dtype=bool)
             tri.last_result = None
             for k in range(repeats + 1):  # the first one only sets the planner's last registration

@@ -301,8 +301,7 @@ class SlideMonitor:
                     # being carried): the scans stopped seeing what pins it (module doc).
                     carried = self.turn_sigma_rad >= _FREE_TURN_RAD and (
                         held.carried if held is not None else (
-                            self.track_quiet >= self.tri.pc.symmetry_switch_checks
-                            and self.turn_confirmed and not self.turn_held()))
+                            self.track_quiet >= self.tri.pc.symmetry_switch_checks and not self.turn_held()))
                     self.turn_quiet = self.track_quiet = 0
                     self.hold(self.turn_axis_target, self.turn_sigma_rad, t_ref, self.turn_pivot_target,
                               carried=carried)

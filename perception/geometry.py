@@ -38,6 +38,7 @@ __all__ = [
     "pose_error",
     "rotation_angle",
     "fast_cross",
+    "los_basis",
     "fast_quat_to_matrix",
     "fast_matrix_to_quat",
     "fast_invert",
@@ -320,6 +321,15 @@ def fast_cross(a: FloatArray, b: FloatArray) -> FloatArray:
     a0, a1, a2 = a.tolist()
     b0, b1, b2 = b.tolist()
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def los_basis(port: FloatArray) -> FloatArray:
+    """(3, 3) rows: the unit line of sight to ``port`` (3,) and two unit vectors across it."""
+    u = port / np.linalg.norm(port)
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    b1 = np.cross(u, a)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([u, b1, np.cross(u, b1)])
 
 
 def fast_rotvec_to_matrix(v: FloatArray) -> FloatArray:

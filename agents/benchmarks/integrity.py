@@ -206,7 +206,7 @@ def los_split(error: FloatArray, cov: FloatArray, port: FloatArray) -> tuple[flo
     """The NEES of a position ``error`` (3,) under ``cov`` (3, 3) along the line of sight to
     ``port`` (3,; sensor frame) and across it, each on its marginal (1 and 2 dof: means 1 and 2
     when honest). NaN where that marginal is not positive definite."""
-    from perception.pipeline.calibration import los_basis
+    from perception.geometry import los_basis
 
     u, *across = los_basis(np.asarray(port, dtype=np.float64))
     B = np.stack(across)

@@ -101,6 +101,14 @@ class IntegrityConfig(StrictModel):
         "accuracy_tof_range_bias_m, over an accuracy_bias_m floor, each within the protection "
         "level's allowance; what check-target shows"
     )
+    accuracy_scatter_window_frames: Annotated[Int, Field(ge=2, le=10_000)] | None = Field(
+        50, description="the published covariance's registration noise is ICP's Cramer-Rao "
+        "position covariance scaled by the mean square of the track's last this many "
+        "registrations' whitened residuals to the filter (covariance matching, along and across "
+        "the line of sight apart; PoseFilter.scatter_scale): on a generated assembly they "
+        "scattered 2-2.5x their bound across it at 6-30 m, on others less. Changes only the "
+        "published covariance (None: ICP's covariance as it is)"
+    )
     accuracy_lever_bias_m: Sigma = Field(
         0.0005, description="differential depth error across a scan [m] that tilts the "
         "registered pose: the published attitude carries this over the scan's lever arm (RMS "

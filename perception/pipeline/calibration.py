@@ -56,7 +56,7 @@ import numpy as np
 import numpy.typing as npt
 
 from perception.estimation.registration import icp
-from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix, skew
+from perception.geometry import fast_matrix_to_rotvec, fast_rotvec_to_matrix, los_basis, skew
 
 if TYPE_CHECKING:
     from perception.pipeline.tridar import TriDAR
@@ -64,7 +64,7 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["CALIBRATION_SEED", "AccuracyTable", "approach_ranges", "calibrate_accuracy",
-           "calibration_ranges", "los_basis"]
+           "calibration_ranges"]
 
 #: Seed of the calibration's own generator (the calibration is the model's, not an episode's).
 CALIBRATION_SEED = 20261205
@@ -132,15 +132,6 @@ def calibration_ranges(min_range_m: float, max_range_m: float, n: int) -> FloatA
 
 def _turn(rng: np.random.Generator, sigma_rad: float) -> FloatArray:
     return fast_rotvec_to_matrix(rng.normal(0.0, sigma_rad, 3))
-
-
-def los_basis(port: FloatArray) -> FloatArray:
-    """(3, 3) rows: the line of sight to ``port`` and two unit vectors across it."""
-    u = port / np.linalg.norm(port)
-    a = np.eye(3)[int(np.argmin(np.abs(u)))]
-    b1 = np.cross(u, a)
-    b1 /= np.linalg.norm(b1)
-    return np.stack([u, b1, np.cross(u, b1)])
 
 
 def _observed(cov: FloatArray, a: FloatArray, B: FloatArray) -> npt.NDArray[np.bool_]:

@@ -169,7 +169,8 @@ class TriDAR:
         self.filter = PoseFilter(*self.process_noise(),
                                  init_rate_sigma=math.radians(self.pc.initial_rate_sigma_deg_s),
                                  ref_point=self.target.T_target_port[:3, 3], inertia=inertia,
-                                 range_bias_m=abs(self.cfg.sensor.tof.bias_m))
+                                 range_bias_m=abs(self.cfg.sensor.tof.bias_m),
+                                 scatter_window=self.pc.integrity.accuracy_scatter_window_frames or 0)
         self.ego: EgoMotion | None = None
         self.logic.reset(0.0)
         self.sensor.frame_counter = 0

@@ -554,3 +554,102 @@ def test_the_accuracy_covariance_carries_the_time_of_flight_range_offset_as_the_
     for c in checks:
         assert lo < nees[c].mean() < hi, (c, nees[c].mean(), lo, hi)
     assert nees_without.mean() > 10 * hi
+
+
+@pytest.mark.parametrize("k2", [4.0, 0.5])
+def test_the_accuracy_covariance_takes_the_scatter_the_registrations_show(k2: float) -> None:
+    """Registrations whose positions scatter ``k2`` times the variance their covariance claims
+    (ICP's bound wrong by a factor, as on shapes where the scan's samples fall differently each
+    frame; the attitude as claimed): with ``scatter_window`` the filter's ``scatter_scale``
+    finds the factor along and across the line of sight from the registrations' residuals to
+    the state (no truth), and the accuracy covariance's pose NEES over 200 seeded runs is
+    inside the chi-square(6) mean's 99.9 % band; without it, off by the factor. The state and
+    ``P`` are bitwise those of the filter without it (nothing in the loop reads ``P_acc``)."""
+    from scipy.stats import chi2
+
+    R_icp = np.diag([5e-4**2] * 3 + [np.radians(0.02) ** 2] * 3)
+    R_f = R_icp + np.diag([0.01**2] * 3 + [np.radians(0.3) ** 2] * 3)
+    L = np.diag([np.sqrt(k2)] * 3 + [1.0] * 3) @ np.linalg.cholesky(R_icp)
+    T0 = make_T(Rotation.from_euler("xyz", [5, -10, 30], degrees=True).as_matrix(), [0.3, -0.2, 12.0])
+    rng = np.random.default_rng(11)
+    n_runs, n_frames = 200, 150
+    nees_with, nees_without, scales = np.empty(n_runs), np.empty(n_runs), np.empty((n_runs, 2))
+    idx = [0, 1, 2, 6, 7, 8]
+    for k in range(n_runs):
+        f = PoseFilter(accel_psd=1e-14, angacc_psd=1e-16, scatter_window=50)
+        g = PoseFilter(accel_psd=1e-14, angacc_psd=1e-16)
+        for i in range(n_frames):
+            d = L @ rng.standard_normal(6)
+            T = make_T(Rotation.from_rotvec(d[3:]).as_matrix() @ T0[:3, :3], T0[:3, 3] + d[:3])
+            if i == 0:
+                for h in (f, g):
+                    h.initialize(0.0, T, R_f, velocity=np.zeros(3), omega=np.zeros(3), cov_acc=R_icp)
+                assert f.scatter_scale() == (1.0, 1.0)  # nothing seen yet
+            else:
+                assert f.update(0.2 * i, T, R_f, R_icp).accepted and g.update(0.2 * i, T, R_f, R_icp).accepted
+        assert np.array_equal(f.P, g.P) and np.array_equal(f.p, g.p) and np.array_equal(f.R, g.R)
+        assert len(f.scatter) == 50
+        scales[k] = f.scatter_scale()
+        Te = f.T_sensor_target
+        e = np.concatenate([Te[:3, 3] - T0[:3, 3], Rotation.from_matrix(Te[:3, :3] @ T0[:3, :3].T).as_rotvec()])
+        nees_with[k] = e @ np.linalg.solve(f.accuracy_covariance()[np.ix_(idx, idx)], e)
+        nees_without[k] = e @ np.linalg.solve(g.accuracy_covariance()[np.ix_(idx, idx)], e)
+    # Each run's factors from 50 frames (50 and 100 dof): within 10 % on average.
+    assert np.allclose(scales.mean(axis=0), k2, rtol=0.1), scales.mean(axis=0)
+    lo, hi = chi2.ppf([0.0005, 0.9995], 6 * n_runs) / n_runs
+    assert lo < nees_with.mean() < hi, (nees_with.mean(), lo, hi)
+    assert not lo < nees_without.mean() < hi
+    assert np.isclose(nees_without.mean() / 3.0 - 1.0, k2, rtol=0.25)  # 3 k2 + 3
+
+
+def test_the_scatter_scale_leaves_out_what_a_registration_does_not_observe() -> None:
+    """A registration that leaves a direction unobserved (ICP's 1e6 along it) adds only the
+    directions it observes to the scatter window; its dof are counted as such, and a residual
+    along the unobserved direction, however large, changes nothing."""
+    R_icp = np.diag([4e-6, 4e-6, 1e6, 1e-6, 1e-6, 1e-6])
+    R_f = R_icp + np.diag([1e-4] * 3 + [1e-4] * 3)
+    f = PoseFilter(accel_psd=1e-14, angacc_psd=1e-16, scatter_window=40)
+    T0 = make_T(np.eye(3), [0.0, 0.0, 8.0])
+    rng = np.random.default_rng(2)
+    f.initialize(0.0, T0, R_f, velocity=np.zeros(3), omega=np.zeros(3), cov_acc=R_icp)
+    for i in range(1, 60):
+        d = np.concatenate([2e-3 * rng.standard_normal(2), [5.0 * rng.standard_normal()], 1e-3 * rng.standard_normal(3)])
+        T = make_T(Rotation.from_rotvec(d[3:]).as_matrix(), T0[:3, 3] + d[:3])
+        assert f.update(0.2 * i, T, R_f, R_icp).accepted
+    # The line of sight (z) is the unobserved axis: no dof along it, two across, three turns.
+    dof = np.array([w[1::2] for w in f.scatter])
+    assert np.allclose(dof, [0.0, 2.0], atol=1e-3)
+    s_al, s_ac = f.scatter_scale()
+    assert s_al == 1.0  # never observed: left alone (whatever the residuals along it)
+    assert 0.6 < s_ac < 1.5  # the observed axes scatter as claimed
+    with pytest.raises(ValueError, match="scatter_window"):
+        PoseFilter(scatter_window=-1)
+
+
+def test_the_scatter_factors_keep_each_registration_direction_on_its_axis() -> None:
+    """The factors go onto the registration covariance's principal directions in their shares
+    of along / across the line of sight (the attitude's share keeps 1): every eigenvector stays one (a weakly
+    observed direction's metres, or an unobserved direction's 1e6 that couples position and
+    attitude, cannot leak into the well-observed directions), an unobserved one keeps its
+    variance, and a pure along / across direction takes exactly its factor."""
+    from perception.pipeline.filter import UNOBSERVED_VARIANCE
+
+    rng = np.random.default_rng(4)
+    Q = np.linalg.qr(rng.standard_normal((6, 6)))[0]
+    Q[:, 0] = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # along the line of sight (p on +z)
+    Q[:, 1] = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # across
+    Q[:, 2] = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # attitude
+    Q[:, 3] = np.array([0.0, 0.6, 0.0, 0.8, 0.0, 0.0])  # a turn about x that moves y: unobserved
+    Q[:, 4] = np.array([0.0, 0.8, 0.0, -0.6, 0.0, 0.0])  # its observed complement
+    Q[:, 5] = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    lam = np.array([1e-6, 4e-6, 1e-8, 1e3, 3.0, 2e-8])
+    R = (Q * lam) @ Q.T
+    f = PoseFilter(scatter_window=10)
+    f.scatter = tuple([(16.0, 4.0, 4.0, 8.0)] * 10)  # factors 4 and 0.5
+    assert f.scatter_scale() == (4.0, 0.5)
+    Rs = f._scattered(R, np.array([0.0, 0.0, 8.0]))
+    expected = np.array([4.0, 0.5, 1.0, 1.0, 0.64 * 0.5 + 0.36, 1.0]) * lam  # attitude: 1
+    expected[3] = lam[3]  # unobserved: as it was
+    assert lam[3] > UNOBSERVED_VARIANCE > lam[4]
+    for j in range(6):
+        assert np.allclose(Rs @ Q[:, j], expected[j] * Q[:, j], rtol=0.0, atol=1e-4 * lam[j])

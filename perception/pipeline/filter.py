@@ -59,7 +59,10 @@ offset shared by every time-of-flight registration, which the gains take into th
 the time of flight ranges and let go at their own pace once triangulation takes over. Added
 after the fact instead, as the frame's share of it, the published covariance had lost it at the
 switch (near 7 m on the stock approach) while the state still held 1-4 mm of it for the next
-metre. The publisher adds the shape's correlated errors (:mod:`perception.pipeline.publish`).
+metre. With ``scatter_window`` the registrations' own noise in ``P_acc`` is ICP's covariance
+scaled to the scatter they show about the track (:meth:`PoseFilter.scatter_scale`). The
+publisher adds the shape's correlated errors (:mod:`perception.pipeline.publish`), among them
+the registrations' bias the sensor model predicts (``TrackingMode.predict_bias``).
 ``P_acc`` never feeds back into the state.
 """
 

@@ -169,16 +169,21 @@ def gravity_gradient(mean_motion: float, radial: npt.ArrayLike) -> FloatArray:
     return n * n * (3.0 * np.outer(r, r) - np.eye(3))
 
 
-def _shares(V: FloatArray, p_ref: FloatArray) -> FloatArray:
-    """(3, k) shares of the unit 6-vectors ``V`` (6, k; position then attitude, at the reference
-    point ``p_ref``) along the line of sight to it, across it and in attitude (each column sums
-    to 1): how :meth:`PoseFilter.scatter_scale`'s factors split over a registration's principal
-    directions. Whitening along and across directly would give the across marginal a share of
-    an unobserved direction's 1e6 that a line of sight a hair off its axis picks up."""
+def _principal(R: FloatArray, p_ref: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(lam, V, W)``: the variances (k,) and unit 6-vectors (6, k; position then attitude) of
+    the principal directions a registration's covariance ``R`` (6, 6, at the reference point
+    ``p_ref``) observes (variance in (0, UNOBSERVED_VARIANCE)), and their shares (3, k; each
+    column sums to 1) along the line of sight to ``p_ref``, across it and in attitude: how
+    :meth:`PoseFilter.scatter_scale`'s factors split over them. Whitening along and across
+    directly would give the across marginal a share of an unobserved direction's 1e6 that a
+    line of sight a hair off its axis picks up."""
+    lam, V = np.linalg.eigh(0.5 * (R + R.T))
+    obs = (lam > 0.0) & (lam < UNOBSERVED_VARIANCE)
+    lam, V = lam[obs], V[:, obs]
     u = los_basis(p_ref)[0]
     w_al = np.square(u @ V[:3])
     w_pos = np.einsum("ij,ij->j", V[:3], V[:3])
-    return np.stack([w_al, w_pos - w_al, 1.0 - w_pos])
+    return lam, V, np.stack([w_al, w_pos - w_al, 1.0 - w_pos])
 
 
 def _euler_rhs(omega: FloatArray, inertia: FloatArray, inertia_inv: FloatArray) -> FloatArray:
@@ -529,9 +534,10 @@ class PoseFilter:
         self.P = I_KH @ self.P @ I_KH.T + K @ cov_pose @ K.T  # Joseph form: stays SPD
         self.P = 0.5 * (self.P + self.P.T)
         R_acc = cov_pose if R_acc is None else R_acc
-        R_raw = R_acc
+        principal = None
         if self.scatter_window:
-            R_acc = self._scattered(R_acc, T_meas[:3, 3])
+            principal = _principal(R_acc, T_meas[:3, 3])
+            R_acc = self._scattered(R_acc, *principal)
         # The same gain on ICP's noise and on the range offset the time-of-flight points share,
         # the same every frame (a consider parameter, Schmidt's): the error after the update
         # is (I - K H) e + K h b + K v, b the offset, h its direction in the measurement.
@@ -542,21 +548,19 @@ class PoseFilter:
         self.P_acc = 0.5 * (self.P_acc + self.P_acc.T)
         self.c_acc = A_c + self.range_bias_var * Kh
         self.n_fused += 1
-        if self.scatter_window and self.n_fused > SCATTER_SETTLE_UPDATES:
+        if principal is not None and self.n_fused > SCATTER_SETTLE_UPDATES:
+            lam, V, W = principal
             r = np.concatenate([T_meas[:3, 3] - self.p, fast_matrix_to_rotvec(T_meas[:3, :3] @ self.R.T)])
-            lam, V = np.linalg.eigh(0.5 * (R_raw + R_raw.T))
-            obs = (lam > 0.0) & (lam < UNOBSERVED_VARIANCE)
-            W = _shares(V[:, obs], T_meas[:3, 3])[:2]  # (2, k): along, across
-            y2 = np.square(V[:, obs].T @ r) / lam[obs]
+            y2 = np.square(V.T @ r) / lam
             self.scatter = (*self.scatter[-(self.scatter_window - 1):],
-                            tuple(float(x) for pair in zip(W @ y2, W.sum(axis=1)) for x in pair))
+                            tuple(float(x) for pair in zip(W[:2] @ y2, W[:2].sum(axis=1)) for x in pair))
         return UpdateResult(True, d2)
 
-    def _scattered(self, R: FloatArray, p_ref: FloatArray) -> FloatArray:
+    def _scattered(self, R: FloatArray, lam: FloatArray, V: FloatArray, W: FloatArray) -> FloatArray:
         """The (6, 6) registration covariance ``R`` (reference point) with :meth:`scatter_scale`'s
-        factors: each of its principal directions keeps its axis, and its variance takes the
-        factors of along and across the line of sight to ``p_ref`` (and 1 for the attitude) in
-        the shares its unit vector has of each. A congruence ``D R D`` would turn the directions,
+        factors, given its observed principal directions (:func:`_principal`): each keeps its
+        axis, and its variance takes the factors of along and across the line of sight (and 1
+        for the attitude) in the shares its unit vector has of each. A congruence ``D R D`` would turn the directions,
         and the variance of one the registration barely observes (metres, or the 1e6 of an
         unobserved one) would leak into directions the gain acts on: the published position
         sigma went from 1.4 mm to 27 mm at hubble's switch to triangulation that way. What it
@@ -564,10 +568,7 @@ class PoseFilter:
         s_al, s_ac = self.scatter_scale()
         if s_al == s_ac == 1.0:
             return R
-        lam, V = np.linalg.eigh(0.5 * (R + R.T))
-        obs = lam < UNOBSERVED_VARIANCE
-        V = V[:, obs]
-        g = (np.array([s_al, s_ac, 1.0]) @ _shares(V, p_ref) - 1.0) * lam[obs]
+        g = (np.array([s_al, s_ac, 1.0]) @ W - 1.0) * lam
         return R + (V * g) @ V.T  # added, not rebuilt: R's small entries keep their precision
 
     def scatter_scale(self) -> tuple[float, float]:

@@ -59,7 +59,7 @@ class FrameOutput:
     consistency: float = 1.0  # variance scale from the registrations' disagreement with the filter
     turn_confirmed: bool = True  # the turn monitor has judged the track (SlideMonitor.turn_confirmed)
     rival_m: float = 0.0  # port offset to a rejected registration not yet ruled out [m] (RivalMonitor)
-    bias_m: FloatArray | None = None  # (3, 3) the registrations' predicted bias at the port, squared [m^2] (TrackingMode.predicted_bias)
+    bias_cov: FloatArray | None = None  # (3, 3) [m^2] the registrations' predicted bias at the port (TrackingMode.bias_covariance)
 
 
 def tof_share(subsystem: npt.NDArray[np.int8]) -> float:
@@ -205,11 +205,11 @@ class Publisher:
             along = min(math.hypot(along, ig.accuracy_bias_m), bias)
             P_f = P_f.copy()
             P_f[0:3, 0:3] += across**2 * (np.eye(3) - los) + along**2 * los
-        if out.bias_m is not None:
+        if out.bias_cov is not None:
             # The sensor model's prediction of the registrations' bias there, the same frame
             # after frame (TrackingMode.predict_bias): carried, not corrected, and within the
             # protection level's allowance as the static figures are.
-            B = out.bias_m
+            B = out.bias_cov
             tr = float(np.trace(B))
             if tr > bias * bias:
                 B = B * (bias * bias / tr)

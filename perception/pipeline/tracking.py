@@ -279,7 +279,7 @@ class TrackingMode:
         self.after_loss(lost, t)
         out = FrameOutput(tri.busy_until, tri.logic.mode, "pose" if tri.logic.mode == Mode.TRACKING else "none",
                           t_ref, len(cloud), fitness=res.fitness, filt=tri.slides.pin(tri.filter.copy()),
-                          bias_m=self.predicted_bias(),
+                          bias_cov=self.bias_covariance(),
                           n_updates=tri.n_updates, ambiguity_m=tri.twins.ambiguity_m, lever_m=lever(pts),
                           consistency=self.consistency(), turn_confirmed=tri.slides.turn_confirmed,
                           tof_share=share, rival_m=tri.rivals.offset_m(tri.filter))
@@ -383,8 +383,8 @@ class TrackingMode:
             tri.n_updates = 0
             tri.search_started = t
 
-    # ------------------------------------------------------------------ outline refinement
-    def predicted_bias(self) -> FloatArray | None:
+    # ------------------------------------------------------------------ bias prediction
+    def bias_covariance(self) -> FloatArray | None:
         """(3, 3) the outer product of the registrations' predicted bias at the port with itself
         [m^2], sensor frame, from the track's last probes of :meth:`predict_bias`, or None (fewer
         than two, or the predictor off). The probes scatter with the pattern's phase (1-2 mm on
@@ -465,6 +465,7 @@ class TrackingMode:
             self._quiet = q
         return q
 
+    # ------------------------------------------------------------------ outline refinement
     def outline_refine(self, res: RegistrationResult, pts: FloatArray, cloud: PointCloud) -> RegistrationResult:
         """Where ICP left axes unobserved, add what the scan says about the outline.
 

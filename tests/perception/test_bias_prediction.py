@@ -83,4 +83,4 @@ def test_the_bias_prediction_is_off_when_not_configured() -> None:
     tm.frame_pattern = (tri.sensor.make_scan_pattern(0, np.eye(4), tri.target.regions["whole"]), 0.0)
     tm.predict_bias(dataclasses.replace(
         icp(np.zeros((0, 3)), tri.model, np.eye(4)), converged=True, degenerate_axes=[]), None)
-    assert tm.bias_probes == () and tm.predicted_bias() is None
+    assert tm.bias_probes == () and tm.bias_covariance() is None

@@ -647,7 +647,9 @@ def test_the_scatter_factors_keep_each_registration_direction_on_its_axis() -> N
     f = PoseFilter(scatter_window=10)
     f.scatter = tuple([(16.0, 4.0, 4.0, 8.0)] * 10)  # factors 4 and 0.5
     assert f.scatter_scale() == (4.0, 0.5)
-    Rs = f._scattered(R, np.array([0.0, 0.0, 8.0]))
+    from perception.pipeline.filter import _principal
+
+    Rs = f._scattered(R, *_principal(R, np.array([0.0, 0.0, 8.0])))
     expected = np.array([4.0, 0.5, 1.0, 1.0, 0.64 * 0.5 + 0.36, 1.0]) * lam  # attitude: 1
     expected[3] = lam[3]  # unobserved: as it was
     assert lam[3] > UNOBSERVED_VARIANCE > lam[4]

@@ -428,17 +428,16 @@ class TrackingMode:
             return
         self.bias_frames = 0
         T = res.T_sensor_target
-        quiet = self.quiet_sensor()
+        quiet = self.quiet_sensor
         # Its own generator: the quiet sensor's draws change nothing, and the pipeline's stay as
         # they were (the closed loop is the same with the probe or without).
         cloud = quiet.scan(tri.model_target, T, self.frame_pattern[0], np.random.default_rng(0))
         if len(cloud) < MIN_REGISTRATION_POINTS:
             return
         # Weighted with the noise the real sensor reports for each point.
-        c = tri.sensor.config
         rng_p = np.linalg.norm(cloud.points, axis=1)
-        sig = np.where(cloud.subsystem == Subsystem.TOF, c.tof.noise_sigma_m,
-                       c.triangulation.noise_k_per_m * rng_p**2)
+        sig = np.where(cloud.subsystem == Subsystem.TOF, tri.sensor.range_sigma(rng_p, Subsystem.TOF),
+                       tri.sensor.range_sigma(rng_p, Subsystem.TRIANGULATION))
         ref = icp(cloud.points, tri.model, T, sigma=sig, directions=cloud.directions,
                   config=icp_cfg, coarse=False)
         if not ref.converged:
@@ -448,22 +447,22 @@ class TrackingMode:
         b = Te[:3, :3] @ r_port + Te[:3, 3] - (T[:3, :3] @ r_port + T[:3, 3])
         self.bias_probes = (*self.bias_probes[-(BIAS_PROBES - 1):], b)
 
+    @functools.cached_property
     def quiet_sensor(self) -> Any:
-        """The pipeline's sensor without its noise, pointing jitter, faults and range offset
-        (built once)."""
-        q = getattr(self, "_quiet", None)
-        if q is None:
-            from perception.sensing.sensors.tridar import TriDARSensor
+        """The pipeline's sensor without its noise, pointing jitter, faults and range offset,
+        switching between its subsystems where the real one does (the default switch is
+        derived from the noise models, which it no longer has)."""
+        from perception.sensing.sensors.tridar import TriDARSensor
 
-            c = self.tri.sensor.config
-            q = TriDARSensor(c.model_copy(update={
-                "tof": c.tof.model_copy(update={"noise_sigma_m": 0.0, "bias_m": 0.0}),
-                "triangulation": c.triangulation.model_copy(update={"noise_k_per_m": 0.0}),
-                "pointing": c.pointing.model_copy(update={"jitter_rad": 0.0}),
-                "faults": type(c.faults)(),
-            }))
-            self._quiet = q
-        return q
+        real = self.tri.sensor
+        c = real.config
+        return TriDARSensor(c.model_copy(update={
+            "tof": c.tof.model_copy(update={"noise_sigma_m": 0.0, "bias_m": 0.0}),
+            "triangulation": c.triangulation.model_copy(update={"noise_k_per_m": 0.0}),
+            "pointing": c.pointing.model_copy(update={"jitter_rad": 0.0}),
+            "faults": type(c.faults)(),
+            "transition_range_m": real.transition_range_m,
+        }))
 
     # ------------------------------------------------------------------ outline refinement
     def outline_refine(self, res: RegistrationResult, pts: FloatArray, cloud: PointCloud) -> RegistrationResult:
